@@ -1,0 +1,194 @@
+"""The Domain contract: what every domain provides, and a checker that tests run on each one.
+
+A domain never knows which method trains it: it supplies the pieces (base training, paired
+and unpaired data, the self-play loss, the paired loss, the convention outputs watched by the
+adversaries, evaluation) and `asp_dist.cell` composes them with the method's loss weights.
+
+Randomness: every random choice goes through an explicit ``torch.Generator`` passed in, so
+that a seed reproduces a domain's output bit for bit and checkpoints can capture RNG state.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import torch
+from torch import nn
+
+from asp_dist.spec import CellSpec, SpecError
+
+Progress = Callable[[str, int, int, dict], None]
+"""progress(phase, done, total, info): called now and then by long loops."""
+
+Tensors = dict[str, torch.Tensor]
+
+
+@dataclass(frozen=True)
+class MetricInfo:
+    higher_is_better: bool
+    doc: str
+
+
+@dataclass
+class SelfPlayOut:
+    """One self-play update's loss and the convention outputs it produced (with grad)."""
+
+    loss: torch.Tensor
+    outputs: Tensors = field(default_factory=dict)
+    info: dict[str, float] = field(default_factory=dict)
+
+
+class Domain(ABC):
+    name: str = ""
+    # Defaults for every CellSpec knob this domain uses (None fields of a spec are filled from here).
+    defaults: dict[str, Any] = {}
+    # Convention channels watched by one adversary each (name -> output dimension given a spec).
+    channels: tuple[str, ...] = ()
+    # Metrics returned by evaluate(); must include "mixed", "self_play_new" and "self_play_base".
+    metrics: dict[str, MetricInfo] = {}
+    # Base acceptance: spec field holding the bar, and whether the base score must be >= it.
+    accept_field: str | None = None
+
+    def validate(self, spec: CellSpec) -> None:
+        """Raise SpecError for a knob value this domain cannot run with."""
+
+    @abstractmethod
+    def channel_dims(self, spec: CellSpec) -> dict[str, int]:
+        """Width of each convention channel's output vectors."""
+
+    # ---- the base convention ------------------------------------------------------------------
+    @abstractmethod
+    def train_base(self, spec: CellSpec, seed: int, progress: Progress | None = None) -> tuple[nn.Module, float]:
+        """Train one base candidate from `seed`; return (agents, score compared with the bar)."""
+
+    @abstractmethod
+    def paired(self, spec: CellSpec, base: nn.Module, n: int, gen: torch.Generator) -> Tensors:
+        """P: n input-output tuples of the base. Sets for n < m must be prefixes of the set for m."""
+
+    @abstractmethod
+    def unpaired(self, spec: CellSpec, base: nn.Module, size: int, gen: torch.Generator) -> Tensors:
+        """U: `size` base outputs per convention channel, with no inputs."""
+
+    # ---- the new agents -------------------------------------------------------------------------
+    @abstractmethod
+    def new_agents(self, spec: CellSpec, seed: int) -> nn.Module:
+        """Fresh agents, initialised from `seed`."""
+
+    def init_self_play(self, spec: CellSpec, agents: nn.Module, gen: torch.Generator) -> Tensors:
+        """State carried between self-play updates (environments, replay buffers); tensors only,
+        so it checkpoints. Stateless domains return {}."""
+        return {}
+
+    @abstractmethod
+    def self_play_step(self, spec: CellSpec, agents: nn.Module, state: Tensors, gen: torch.Generator) -> SelfPlayOut:
+        """One self-play batch: the loss L_sp and the convention outputs (with grad). May update
+        `state` in place."""
+
+    @abstractmethod
+    def paired_loss(self, spec: CellSpec, agents: nn.Module, paired: Tensors) -> torch.Tensor:
+        """L_p on the full paired set."""
+
+    @abstractmethod
+    def convention_outputs(self, spec: CellSpec, agents: nn.Module, n: int, gen: torch.Generator) -> Tensors:
+        """n outputs per channel of the agents on their own input distribution (with grad)."""
+
+    @abstractmethod
+    def evaluate(self, spec: CellSpec, base: nn.Module, agents: nn.Module, gen: torch.Generator) -> dict[str, float]:
+        """Mixed-team scores (Eq. 1) and their components, self-play of new agents and of the base."""
+
+    def figure_data(self, spec: CellSpec, base: nn.Module, agents: nn.Module) -> dict[str, Any] | None:
+        """Arrays for the paper's figures (lists of numbers), when the domain has any."""
+        return None
+
+
+def check_domain(domain: Domain, spec: CellSpec) -> None:
+    """Contract checker (PettingZoo-style): same seed -> identical base, P, U, rollouts and scores.
+
+    Raises AssertionError naming the piece that broke the contract."""
+    spec = spec.resolved()
+    assert spec.domain == domain.name, "spec is for another domain"
+    for metric in ("mixed", "self_play_new", "self_play_base"):
+        assert metric in domain.metrics, f"{domain.name}: metrics must declare {metric!r}"
+    for knob in domain.defaults:
+        assert hasattr(spec, knob), f"{domain.name}: default for unknown field {knob!r}"
+
+    base_a, score_a = domain.train_base(spec, seed=123)
+    base_b, score_b = domain.train_base(spec, seed=123)
+    assert score_a == score_b, "train_base: same seed gave different scores"
+    assert_same_params(base_a, base_b, "train_base")
+
+    def gen(seed: int) -> torch.Generator:
+        return torch.Generator().manual_seed(seed)
+
+    n = max(spec.paired, 3)
+    p1, p2 = domain.paired(spec, base_a, n, gen(1)), domain.paired(spec, base_a, n, gen(1))
+    assert_same_tensors(p1, p2, "paired")
+    prefix = domain.paired(spec, base_a, n - 1, gen(1))
+    for k in p1:
+        assert torch.equal(prefix[k], p1[k][: n - 1]), f"paired: set for n-1 is not a prefix of the set for n ({k})"
+    u1, u2 = domain.unpaired(spec, base_a, 16, gen(2)), domain.unpaired(spec, base_a, 16, gen(2))
+    assert_same_tensors(u1, u2, "unpaired")
+    dims = domain.channel_dims(spec)
+    assert set(u1) == set(domain.channels) == set(dims), "unpaired: one entry per convention channel"
+    for ch, t in u1.items():
+        assert t.shape == (16, dims[ch]), f"unpaired[{ch}] has shape {tuple(t.shape)}, expected (16, {dims[ch]})"
+
+    agents_a, agents_b = domain.new_agents(spec, 7), domain.new_agents(spec, 7)
+    assert_same_params(agents_a, agents_b, "new_agents")
+    outs = []
+    for agents in (agents_a, agents_b):
+        g = gen(3)
+        state = domain.init_self_play(spec, agents, g)
+        step = [domain.self_play_step(spec, agents, state, g) for _ in range(2)][-1]
+        conv = domain.convention_outputs(spec, agents, 5, g)
+        outs.append((step, conv))
+    assert torch.equal(outs[0][0].loss, outs[1][0].loss), "self_play_step: same seed gave different losses"
+    assert_same_tensors(outs[0][0].outputs, outs[1][0].outputs, "self_play_step outputs")
+    assert_same_tensors(outs[0][1], outs[1][1], "convention_outputs")
+    for ch, t in outs[0][1].items():
+        assert t.shape == (5, dims[ch]), f"convention_outputs[{ch}] has shape {tuple(t.shape)}"
+        assert t.requires_grad, f"convention_outputs[{ch}] must carry gradients to the agents"
+    assert domain.paired_loss(spec, agents_a, p1).requires_grad, "paired_loss must carry gradients"
+
+    m1 = domain.evaluate(spec, base_a, agents_a, gen(4))
+    m2 = domain.evaluate(spec, base_a, agents_a, gen(4))
+    assert m1 == m2, "evaluate: same seed gave different metrics"
+    assert set(m1) == set(domain.metrics), f"evaluate returned {sorted(m1)}, declared {sorted(domain.metrics)}"
+
+
+def assert_same_params(a: nn.Module, b: nn.Module, what: str) -> None:
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys(), f"{what}: different parameter names"
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), f"{what}: parameter {k} differs between two runs of one seed"
+
+
+def assert_same_tensors(a: Tensors, b: Tensors, what: str) -> None:
+    assert a.keys() == b.keys(), f"{what}: different keys"
+    for k in a:
+        assert torch.equal(a[k], b[k]), f"{what}: {k} differs between two runs of one seed"
+
+
+def require(condition: bool, message: str) -> None:
+    if not condition:
+        raise SpecError(message)
+
+
+def init_mlp(sizes: list[int], activation: type[nn.Module] = nn.ReLU, out_activation: nn.Module | None = None) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers.append(activation())
+    if out_activation is not None:
+        layers.append(out_activation)
+    return nn.Sequential(*layers)
+
+
+def seeded(seed: int, build: Callable[[], nn.Module]) -> nn.Module:
+    """Build a module with parameters drawn from `seed`, leaving the global RNG untouched."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return build()

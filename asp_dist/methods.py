@@ -1,0 +1,63 @@
+"""PC, OSP and ASP as weights on one loss:  L = w_sp·L_sp + λ0·L_p + λ1·L_u.
+
+PC   (policy cloning):            w_sp = 0, λ1 = 0  — paired data only, no self-play.
+OSP  (observationally augmented   w_sp = 1, λ1 = 0  — self-play and paired loss, interleaved
+      self-play):                                     in every update.
+ASP  (adversarial self-play):     w_sp = 1, λ1 > 0  — OSP plus adversaries on unpaired data.
+
+A term whose weight is zero is not computed at all (PC never rolls out self-play), which
+keeps the composition exact: with λ0 = λ1 = 0 the loss *is* L_sp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from asp_dist.spec import CellSpec
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    self_play: float
+    paired: float
+    unpaired: float
+
+    @property
+    def needs_self_play(self) -> bool:
+        return self.self_play != 0.0
+
+    @property
+    def needs_adversary(self) -> bool:
+        return self.unpaired != 0.0
+
+
+def method_weights(spec: CellSpec) -> LossWeights:
+    spec = spec.resolved()
+    lambda_paired = float(spec.lambda_paired) if spec.paired > 0 else 0.0
+    if spec.method == "pc":
+        return LossWeights(self_play=0.0, paired=lambda_paired, unpaired=0.0)
+    if spec.method == "osp":
+        return LossWeights(self_play=1.0, paired=lambda_paired, unpaired=0.0)
+    if spec.method == "asp":
+        return LossWeights(self_play=1.0, paired=lambda_paired, unpaired=float(spec.lambda_unpaired))
+    raise ValueError(f"unknown method {spec.method!r}")
+
+
+def compose_loss(weights: LossWeights, self_play: torch.Tensor | None, paired: torch.Tensor | None,
+                 unpaired: torch.Tensor | None) -> torch.Tensor:
+    """The weighted sum; a term may be None exactly when its weight is zero."""
+    total: torch.Tensor | None = None
+    for weight, term, name in ((weights.self_play, self_play, "self-play"),
+                               (weights.paired, paired, "paired"),
+                               (weights.unpaired, unpaired, "unpaired")):
+        if weight == 0.0:
+            continue
+        if term is None:
+            raise ValueError(f"the {name} term has weight {weight} but was not computed")
+        total = weight * term if total is None else total + weight * term
+    if total is None:
+        # Nothing to learn (e.g. PC with zero paired examples): a zero loss with no gradient.
+        return torch.zeros(())
+    return total

@@ -1,0 +1,246 @@
+"""CellSpec: every knob of one training cell, typed, documented and validated.
+
+A cell is one (domain, method, paired, trial) training run plus the domain's own knobs.
+Fields left as ``None`` take the domain's default when the spec is *resolved*; a resolved
+spec is what runs, what is hashed into ``cell_id`` and what is written to the result row.
+
+Domain-specific knobs carry their domain's name as a prefix (``vae_latent_dim``) so that
+one flat, pinned schema serves every domain: a particle row simply has ``vae_*`` = null.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field, fields
+from typing import Any, get_type_hints
+
+METHODS = ("pc", "osp", "asp")
+ADVERSARY_LOSSES = ("neg_bce", "non_saturating")
+
+
+class SpecError(ValueError):
+    """A cell spec that cannot run; the message says which field and how to fix it."""
+
+
+def knob(default: Any = None, doc: str = "") -> Any:
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    # --- identity of the cell -------------------------------------------------------------
+    domain: str = knob("signaling", "Domain: particles | vae | levers | signaling.")
+    method: str = knob("asp", "Method: pc (paired only) | osp (self-play + paired) | asp (osp + adversary).")
+    paired: int = knob(0, "Number of paired (input, output) examples of the base convention, |P|.")
+    trial: int = knob(0, "Trial index: selects the base model and all seeds of the cell.")
+    root_seed: int = knob(0, "Global seed; every seed of the cell is derived from (root_seed, trial, ...).")
+
+    # --- the loss L = w_sp*L_sp + lambda_paired*L_p + lambda_unpaired*L_u ------------------
+    lambda_paired: float | None = knob(None, "λ0: weight of the paired (supervised) loss.")
+    lambda_unpaired: float | None = knob(None, "λ1: weight of the adversarial (unpaired) loss; ASP only.")
+    adversary_loss: str = knob("neg_bce", "Model's adversarial term: neg_bce (paper: -BCE) | non_saturating (-log D(fake)).")
+    unpaired_size: int | None = knob(None, "|U|: number of unpaired base outputs per convention channel.")
+    unpaired_batch: int | None = knob(None, "Unpaired samples shown to each discriminator per update (default: batch_size).")
+
+    # --- optimisation of the new agents ---------------------------------------------------
+    train_steps: int | None = knob(None, "Number of training updates (batches) of the new agents.")
+    batch_size: int | None = knob(None, "Self-play batch size per update (domain's unit: envs, images, games).")
+    lr: float | None = knob(None, "Adam learning rate of the new agents.")
+    disc_hidden: int | None = knob(None, "Hidden units of each discriminator's MLP.")
+    disc_layers: int | None = knob(None, "Hidden layers of each discriminator's MLP.")
+    disc_lr: float | None = knob(None, "Adam learning rate of the discriminators.")
+
+    # --- base model and evaluation ----------------------------------------------------------
+    base_train_steps: int | None = knob(None, "Training updates of the base model.")
+    base_max_attempts: int = knob(5, "Base retrained with the next seed at most this many times if it misses the bar.")
+    eval_episodes: int | None = knob(None, "Evaluation size per mixed-team composition (episodes, images or games).")
+    record_figure_data: bool = knob(False, "Store figure arrays (latent codes, communication vectors) in the row.")
+
+    # --- signaling game (the paper's policy-space analysis) ----------------------------------
+    signaling_states: int | None = knob(None, "S: number of states of the one-step signaling game.")
+    signaling_tokens: int | None = knob(None, "A: number of tokens (and listener actions).")
+    signaling_skew: float | None = knob(None, "Token-distribution skew: 0 = uniform, larger = more concentrated (p_k ∝ exp(-skew·k)).")
+
+    # --- particle world (speaker-listener, A2C) ---------------------------------------------
+    particles_message_dim: int | None = knob(None, "Dimension of the speaker's continuous message (paper: 128).")
+    particles_hidden: int | None = knob(None, "Hidden units of speaker, listener and critic MLPs.")
+    particles_episode_len: int | None = knob(None, "Steps per episode (paper: 40).")
+    particles_gamma: float | None = knob(None, "A2C discount factor.")
+    particles_entropy: float | None = knob(None, "A2C entropy bonus weight.")
+    particles_value_coef: float | None = knob(None, "A2C value-loss weight.")
+    particles_rollout_len: int | None = knob(None, "Environment steps per A2C update (n-step return length).")
+    particles_base_envs: int | None = knob(None, "Parallel environments used to train the base pair.")
+    particles_base_lr: float | None = knob(None, "Adam learning rate of the base pair.")
+    particles_accept_return: float | None = knob(None, "Base accepted at mean self-play return >= this (paper: 300).")
+
+    # --- MNIST VAE -------------------------------------------------------------------------------
+    vae_latent_dim: int | None = knob(None, "Latent size d (paper: 32; grid 2..128).")
+    vae_hidden: int | None = knob(None, "Hidden units of encoder and decoder (paper: 512).")
+    vae_kl_weight: float | None = knob(None, "Weight of the KL term of the VAE loss.")
+    vae_base_lr: float | None = knob(None, "Adam learning rate of the base VAE.")
+    vae_base_batch: int | None = knob(None, "Batch size of base VAE training (paper: 128).")
+    vae_train_images: int | None = knob(None, "Use only the first N training images (0 = all 60k); for tests.")
+
+    # --- CommNet levers --------------------------------------------------------------------------
+    levers_hidden: int | None = knob(None, "Hidden size of the CommNet f-blocks.")
+    levers_num_ids: int | None = knob(None, "Agent IDs are drawn from 0..num_ids-1 (paper: 10).")
+    levers_eps_start: float | None = knob(None, "ε-greedy exploration at the start of training.")
+    levers_eps_end: float | None = knob(None, "ε-greedy exploration at the end of the schedule.")
+    levers_eps_decay_frac: float | None = knob(None, "Fraction of training over which ε decays linearly.")
+    levers_replay_size: int | None = knob(None, "Replay buffer capacity (games).")
+    levers_base_lr: float | None = knob(None, "Adam learning rate of the base network.")
+    levers_accept_reward: float | None = knob(None, "Base accepted at mean reward >= this (paper: 0.95).")
+
+    # ------------------------------------------------------------------------------------------
+    def replace(self, **changes: Any) -> "CellSpec":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "CellSpec":
+        unknown = sorted(set(data) - set(FIELD_NAMES))
+        if unknown:
+            raise SpecError(f"unknown cell field(s) {', '.join(unknown)}; run `asp-dist fields` for the list")
+        return cls(**{k: coerce_field(k, v) for k, v in data.items()})
+
+    def resolved(self) -> "CellSpec":
+        """Fill every None knob with the domain's default and validate the result."""
+        from asp_dist.domains import get_domain
+
+        self.validate_identity()
+        domain = get_domain(self.domain)
+        filled = {k: v for k, v in domain.defaults.items() if getattr(self, k) is None}
+        spec = dataclasses.replace(self, **filled)
+        if spec.method != "asp" and spec.lambda_unpaired not in (None, 0, 0.0):
+            # λ1 has no meaning without an adversary; keep it in the row as 0 so rows stay comparable.
+            spec = dataclasses.replace(spec, lambda_unpaired=0.0)
+        if spec.unpaired_batch is None:
+            spec = dataclasses.replace(spec, unpaired_batch=spec.batch_size)
+        spec.validate_resolved()
+        return spec
+
+    # ---- validation --------------------------------------------------------------------------
+    def validate_identity(self) -> None:
+        from asp_dist.domains import DOMAINS
+
+        if self.domain not in DOMAINS:
+            raise SpecError(f"unknown domain {self.domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
+        if self.method not in METHODS:
+            raise SpecError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.adversary_loss not in ADVERSARY_LOSSES:
+            raise SpecError(f"adversary_loss must be one of {', '.join(ADVERSARY_LOSSES)}, got {self.adversary_loss!r}")
+        for name in ("paired", "trial", "root_seed"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                raise SpecError(f"{name} must be an integer >= 0, got {value!r}")
+
+    def validate_resolved(self) -> None:
+        from asp_dist.domains import get_domain
+
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            if value < 0:
+                raise SpecError(f"{f.name} must be >= 0, got {value!r}")
+        for name in ("train_steps", "batch_size", "unpaired_size", "unpaired_batch", "eval_episodes",
+                     "disc_hidden", "disc_layers", "base_max_attempts"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise SpecError(f"{name} must be >= 1, got {value!r}")
+        for name in ("lr", "disc_lr"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise SpecError(f"{name} must be > 0, got {value!r}")
+        get_domain(self.domain).validate(self)
+
+    # ---- identity ----------------------------------------------------------------------------
+    @property
+    def cell_id(self) -> str:
+        """Readable, stable id: same resolved spec -> same id, on every machine."""
+        spec = self.resolved()
+        digest = stable_hash(spec.to_dict())[:10]
+        return f"{spec.domain}-{spec.method}-p{spec.paired}-t{spec.trial}-{digest}"
+
+    def base_fields(self) -> dict[str, Any]:
+        """The fields the base model depends on; cells agreeing on these share one base."""
+        spec = self.resolved()
+        prefix = spec.domain + "_"
+        keep = {"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts"}
+        return {k: v for k, v in spec.to_dict().items() if k in keep or k.startswith(prefix)}
+
+    @property
+    def base_key(self) -> str:
+        return stable_hash(self.base_fields())[:16]
+
+    def seed_for(self, purpose: str) -> int:
+        """Derived seeds. 'base' depends on the base fields only; 'data' (P and U) and 'init'
+        (new agents) on (domain, trial, paired) but not the method, so PC/OSP/ASP of one
+        block see the same paired set, unpaired set and initial weights (common random numbers).
+        'train' and 'eval' add the method and every knob."""
+        spec = self.resolved()
+        if purpose == "base":
+            material: Any = self.base_fields()
+        elif purpose in ("data", "init"):
+            material = {"base": self.base_fields(), "paired": spec.paired}
+        elif purpose in ("train", "eval"):
+            material = spec.to_dict()
+        else:
+            raise ValueError(f"unknown seed purpose {purpose!r}")
+        return int(stable_hash({"purpose": purpose, "material": material})[:12], 16)
+
+
+FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
+FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}
+_HINTS = get_type_hints(CellSpec)
+
+
+def field_type(name: str) -> type:
+    """The scalar Python type of a field (int, float, str or bool)."""
+    hint = str(_HINTS[name])
+    for t in (bool, int, float, str):
+        if t.__name__ in hint:
+            return t
+    raise TypeError(f"unsupported field type {hint} for {name}")
+
+
+def coerce_field(name: str, value: Any) -> Any:
+    """Convert text or numbers (from the CLI, YAML or JSON) into the field's type, with a clear error."""
+    if name not in FIELD_DOCS:
+        raise SpecError(f"unknown cell field {name!r}; run `asp-dist fields` for the list")
+    if value is None:
+        return None
+    t = field_type(name)
+    try:
+        if t is bool:
+            if isinstance(value, str):
+                if value.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if value.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError
+            return bool(value)
+        if t is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            if isinstance(value, str) and value.lower() == "none":
+                return None
+            return int(value)
+        if t is float:
+            if isinstance(value, str) and value.lower() == "none":
+                return None
+            return float(value)
+        return str(value)
+    except (TypeError, ValueError):
+        raise SpecError(f"{name} must be of type {t.__name__}, got {value!r}") from None
+
+
+def stable_hash(obj: Any) -> str:
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
