@@ -123,7 +123,7 @@ class SignalingDomain(Domain):
         tokens = agents.speak_hard(states, gen)
         probs = F.softmax(tokens @ agents.listener, dim=-1)
         reward = probs.gather(1, state_classes(spec)[states][:, None]).squeeze(1)
-        return SelfPlayOut(loss=-reward.mean(), outputs={"token": tokens}, info={"reward": float(reward.mean())})
+        return SelfPlayOut(loss=-reward.mean(), outputs={"token": tokens}, info={"reward": float(reward.detach().mean())})
 
     def paired_loss(self, spec, agents, paired):
         return (F.cross_entropy(agents.speaker[paired["state"]], paired["token"])
