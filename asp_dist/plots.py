@@ -1,0 +1,326 @@
+"""The paper's figures from the stats job's result (matplotlib, Agg backend, PNG and SVG).
+
+- metric vs paired count per domain: median line and first–third quartile band per treatment,
+  one panel per condition (e.g. per skew or latent size);
+- metric vs a numeric knob (VAE latent size, signaling skew …), one panel per paired count;
+- the effect of ASP (median paired difference ASP − other, bootstrap 95 % interval) against a
+  numeric knob — for the signaling game, against the token-distribution skew;
+- scatters from rows' ``figure_data``: VAE 2-D latent codes coloured by digit
+  (``{"kind": "latent2d", "base", "new", "labels"}``) and the PCA of lever communication
+  vectors coloured by agent ID (``{"kind": "comm", "base", "new", "ids"}``).
+
+Every y axis names the metric with its unit and says which direction is better.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from asp_dist.stats import StatsResult, bootstrap_median_ci, group_seed, is_asp, treatment_order  # noqa: E402
+
+METRIC_UNITS: dict[tuple[str, str], str] = {
+    ("particles", "eval_mixed"): "mixed-team reward per 40-step episode",
+    ("vae", "eval_mixed"): "mixed reconstruction MSE per pixel",
+    ("levers", "eval_mixed"): "mixed-team error, 1 − reward (fraction of levers)",
+    ("signaling", "eval_mixed"): "mixed-team accuracy (fraction of states)",
+}
+KNOB_LABELS = {
+    "vae_latent_dim": "latent size d (dimensions)",
+    "signaling_skew": "token skew (0 = uniform)",
+    "paired": "paired examples |P| (count)",
+}
+METHOD_COLORS = {"pc": "#7f7f7f", "osp": "#1f77b4", "asp": "#d62728"}
+MAX_PANELS = 8
+MAX_FIGURES_PER_KIND = 12
+
+
+@dataclass
+class Figure:
+    name: str  # file stem under figures/
+    title: str
+    caption: str
+    paths: list[Path]
+
+
+def metric_label(domain: str, metric: str, higher: bool) -> str:
+    unit = METRIC_UNITS.get((domain, metric), metric)
+    return f"{unit}\n({'↑ higher' if higher else '↓ lower'} is better)"
+
+
+def _style(treatment: str, i: int) -> dict[str, Any]:
+    method = treatment.split("[")[0]
+    styles = ["-", "--", ":", "-."]
+    return {"color": METHOD_COLORS.get(method, f"C{i}"), "linestyle": styles[i % len(styles)] if "[" in treatment else "-",
+            "marker": "o", "markersize": 4, "label": treatment.upper() if "[" not in treatment else treatment}
+
+
+def _use_log2(values: np.ndarray) -> bool:
+    v = np.asarray(sorted(set(values)), dtype=float)
+    positive = v[v > 0]
+    return len(positive) >= 3 and positive.max() / positive.min() >= 8
+
+
+def _save(fig: plt.Figure, out_dir: Path, stem: str) -> list[Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for ext in ("png", "svg"):
+        path = out_dir / f"{stem}.{ext}"
+        fig.savefig(path, dpi=130 if ext == "png" else None, bbox_inches="tight")
+        paths.append(path)
+    plt.close(fig)
+    return paths
+
+
+def _panels(n: int) -> tuple[plt.Figure, list[plt.Axes]]:
+    cols = n if n <= 4 else 3
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False, sharey=True,
+                             layout="constrained")
+    flat = list(axes.ravel())
+    for ax in flat[n:]:
+        ax.set_visible(False)
+    return fig, flat[:n]
+
+
+def _safe(text: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)[:80]
+
+
+# ---- metric vs paired -------------------------------------------------------------------------------
+
+def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Figure | None:
+    summary = result.tables["summary"]
+    s = summary[summary["domain"] == domain]
+    if s.empty:
+        return None
+    layout = result.layouts[domain]
+    conditions = sorted(s["condition"].unique())[:MAX_PANELS]
+    fig, axes = _panels(len(conditions))
+    log2 = _use_log2(s["paired"].to_numpy())
+    for ax, cond in zip(axes, conditions):
+        sc = s[s["condition"] == cond]
+        for i, treat in enumerate(treatment_order(sc["treatment"])):
+            g = sc[sc["treatment"] == treat].sort_values("paired")
+            style = _style(treat, i)
+            ax.plot(g["paired"], g["median"], **style)
+            ax.fill_between(g["paired"], g["q1"], g["q3"], color=style["color"], alpha=0.15, linewidth=0)
+        if log2:
+            ax.set_xscale("symlog", base=2, linthresh=1)
+        ax.set_xticks(sorted(sc["paired"].unique()))
+        ax.set_xticklabels([str(p) for p in sorted(sc["paired"].unique())])
+        ax.set_xlabel(KNOB_LABELS["paired"])
+        ax.set_title(cond if cond != "all" else domain, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
+    axes[0].legend(fontsize=8)
+    n_trials = int(result.rows.loc[result.rows["domain"] == domain, "trial"].nunique())
+    fig.suptitle(f"{domain}: median and quartiles over {n_trials} trials", fontsize=11)
+    stem = f"{domain}_metric_vs_paired"
+    return Figure(stem, f"{domain}: {result.config.metric} against paired count",
+                  "Median (line) and first–third quartile band per method; "
+                  + ("one panel per condition." if len(conditions) > 1 else ""),
+                  _save(fig, out_dir, stem))
+
+
+# ---- metric vs a numeric knob ---------------------------------------------------------------------
+
+def _numeric_knobs(result: StatsResult, domain: str) -> list[str]:
+    rows = result.rows[result.rows["domain"] == domain]
+    out = []
+    for k in result.layouts[domain].shared_knobs:
+        values = pd.to_numeric(rows[k], errors="coerce")
+        if values.notna().all() and values.nunique() >= 2:
+            out.append(k)
+    return out
+
+
+def plot_metric_vs_knob(result: StatsResult, domain: str, knob: str, out_dir: Path) -> list[Figure]:
+    summary = result.tables["summary"]
+    layout = result.layouts[domain]
+    s = summary[summary["domain"] == domain].copy()
+    others = [k for k in layout.shared_knobs if k != knob]
+    figures = []
+    groups = s.groupby(others, sort=True) if others else [((), s)]
+    for key, g in list(groups)[:MAX_FIGURES_PER_KIND]:
+        key = key if isinstance(key, tuple) else (key,)
+        suffix = ", ".join(f"{k}={v}" for k, v in zip(others, key))
+        # Panels: paired counts at which the knob takes at least two values.
+        counts = [p for p, gp in g.groupby("paired") if gp[knob].nunique() >= 2][-MAX_PANELS:]
+        if not counts:
+            continue
+        fig, axes = _panels(len(counts))
+        log2 = _use_log2(g[knob].to_numpy())
+        for ax, paired in zip(axes, counts):
+            gp = g[g["paired"] == paired]
+            for i, treat in enumerate(treatment_order(gp["treatment"])):
+                t = gp[gp["treatment"] == treat].sort_values(knob)
+                style = _style(treat, i)
+                ax.plot(t[knob], t["median"], **style)
+                ax.fill_between(t[knob].astype(float), t["q1"], t["q3"], color=style["color"], alpha=0.15, linewidth=0)
+            if log2:
+                ax.set_xscale("log", base=2)
+                ticks = sorted(gp[knob].unique())
+                ax.set_xticks(ticks)
+                ax.set_xticklabels([f"{v:g}" for v in ticks])
+            ax.set_xlabel(KNOB_LABELS.get(knob, knob))
+            ax.set_title(f"{paired} paired" + (f", {suffix}" if suffix else ""), fontsize=10)
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
+        axes[0].legend(fontsize=8)
+        fig.suptitle(f"{domain}: {result.config.metric} against {knob} (median and quartiles)", fontsize=11)
+        stem = _safe(f"{domain}_metric_vs_{knob}" + (f"_{suffix}" if suffix else ""))
+        figures.append(Figure(stem, f"{domain}: {result.config.metric} against {knob}" + (f" ({suffix})" if suffix else ""),
+                              "Median and quartile band per method, one panel per paired count.",
+                              _save(fig, out_dir, stem)))
+    return figures
+
+
+def plot_asp_effect_vs_knob(result: StatsResult, domain: str, knob: str, out_dir: Path) -> Figure | None:
+    """Median paired difference ASP − other per knob value (blocks = trials), with bootstrap 95 % CI."""
+    rows = result.rows[result.rows["domain"] == domain]
+    layout = result.layouts[domain]
+    others_knobs = [k for k in layout.shared_knobs if k != knob]
+    if others_knobs and rows[others_knobs].drop_duplicates().shape[0] > 1:
+        return None  # the effect is only drawn when the knob is the only condition
+    treatments = treatment_order(rows["treatment"])
+    asps = [t for t in treatments if is_asp(t)]
+    opponents = [t for t in treatments if not is_asp(t)]
+    if not asps or not opponents:
+        return None
+    sign = 1.0 if layout.higher_is_better else -1.0
+    fig, axes = _panels(len(opponents))
+    paired_counts = sorted(rows["paired"].unique())
+    cmap = plt.get_cmap("viridis", max(2, len(paired_counts)))
+    for ax, other in zip(axes, opponents):
+        for asp in asps:
+            for j, paired in enumerate(paired_counts):
+                xs, meds, los, his = [], [], [], []
+                for value, g in rows[rows["paired"] == paired].groupby(knob, sort=True):
+                    wide = g.pivot_table(index=["root_seed", "trial"], columns="treatment", values="score", aggfunc="mean")
+                    if asp not in wide or other not in wide:
+                        continue
+                    diff = sign * (wide[asp] - wide[other]).dropna().to_numpy()
+                    if len(diff) == 0:
+                        continue
+                    lo, hi = bootstrap_median_ci(diff, result.config.n_boot, result.config.ci,
+                                                 group_seed(result.config.seed, "effect", domain, knob, value, asp, other, paired))
+                    xs.append(float(value)), meds.append(float(np.median(diff))), los.append(lo), his.append(hi)
+                if not xs:
+                    continue
+                meds_a, los_a, his_a = np.array(meds), np.array(los), np.array(his)
+                ax.errorbar(np.array(xs) + 0.02 * (j - len(paired_counts) / 2) * (max(xs) - min(xs) or 1), meds_a,
+                            yerr=[meds_a - los_a, his_a - meds_a], marker="o", markersize=4, capsize=2,
+                            color=cmap(j), label=f"{paired} paired" + (f" ({asp})" if len(asps) > 1 else ""))
+        ax.axhline(0, color="black", linewidth=0.8)
+        ax.set_xlabel(KNOB_LABELS.get(knob, knob))
+        ax.set_title(f"ASP − {other.upper()}", fontsize=10)
+        ax.grid(alpha=0.3)
+    unit = METRIC_UNITS.get((domain, result.config.metric), result.config.metric)
+    better = "above 0: ASP better" if layout.higher_is_better else "below 0: ASP better"
+    axes[0].set_ylabel(f"median paired difference in\n{unit} ({better})")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{domain}: effect of ASP against {knob} (bootstrap 95 % interval over trials)", fontsize=11)
+    stem = _safe(f"{domain}_asp_effect_vs_{knob}")
+    return Figure(stem, f"{domain}: effect of ASP against {knob}",
+                  "Median over trials of the paired difference ASP − other method at the same (trial, paired), "
+                  "with a percentile-bootstrap 95 % interval.", _save(fig, out_dir, stem))
+
+
+# ---- scatters from figure_data --------------------------------------------------------------------
+
+def _figure_payloads(rows: pd.DataFrame) -> list[tuple[dict, dict]]:
+    out = []
+    if "figure_data" not in rows:
+        return out
+    for rec in rows[rows["figure_data"].notna()].to_dict("records"):
+        try:
+            data = json.loads(rec["figure_data"]) if isinstance(rec["figure_data"], str) else rec["figure_data"]
+        except ValueError:
+            continue
+        if isinstance(data, dict) and data.get("kind") in ("latent2d", "comm"):
+            out.append((rec, data))
+    return out
+
+
+def _pca2(x: np.ndarray) -> np.ndarray:
+    x = x - x.mean(axis=0, keepdims=True)
+    if x.shape[1] <= 2:
+        return x if x.shape[1] == 2 else np.hstack([x, np.zeros((len(x), 2 - x.shape[1]))])
+    _, _, vt = np.linalg.svd(x, full_matrices=False)
+    return x @ vt[:2].T
+
+
+def _scatter(ax: plt.Axes, points: np.ndarray, colors: np.ndarray, title: str) -> Any:
+    sc = ax.scatter(points[:, 0], points[:, 1], c=colors, cmap="tab10", vmin=-0.5, vmax=9.5, s=6, alpha=0.8, linewidths=0)
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks([]), ax.set_yticks([])
+    return sc
+
+
+def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], list[str]]:
+    """Latent and communication scatters: base, then ASP (or the only method) at up to 4 paired counts."""
+    figures, notes = [], []
+    payloads = _figure_payloads(result.rows)
+    by_key: dict[tuple, list[tuple[dict, dict]]] = {}
+    for rec, data in payloads:
+        by_key.setdefault((rec["domain"], data["kind"], rec["condition"]), []).append((rec, data))
+    for (domain, kind, cond), items in sorted(by_key.items())[:MAX_FIGURES_PER_KIND]:
+        color_key = "labels" if kind == "latent2d" else "ids"
+        try:
+            trial = min(int(r["trial"]) for r, _ in items)
+            items = [(r, d) for r, d in items if int(r["trial"]) == trial]
+            prefer = [(r, d) for r, d in items if is_asp(r["treatment"])] or items
+            prefer.sort(key=lambda rd: int(rd[0]["paired"]))
+            if len(prefer) > 4:
+                prefer = [prefer[i] for i in np.linspace(0, len(prefer) - 1, 4).round().astype(int)]
+            first = prefer[0][1]
+            panels = [("Base model", np.asarray(first["base"], float), np.asarray(first[color_key]))]
+            for rec, data in prefer:
+                panels.append((f"{rec['treatment'].upper()} + {rec['paired']} paired",
+                               np.asarray(data["new"], float), np.asarray(data[color_key])))
+            fig, axes = plt.subplots(1, len(panels), figsize=(3.0 * len(panels), 3.2), squeeze=False,
+                                     layout="constrained")
+            for ax, (title, pts, colors) in zip(axes[0], panels):
+                if pts.ndim != 2 or len(pts) != len(colors):
+                    raise ValueError(f"{title}: {pts.shape} points but {len(colors)} colours")
+                sc = _scatter(ax, pts if kind == "latent2d" else _pca2(pts), colors, title)
+            cbar = fig.colorbar(sc, ax=list(axes[0]), ticks=range(10), fraction=0.02)
+            cbar.set_label("digit" if kind == "latent2d" else "agent ID")
+        except (KeyError, ValueError, TypeError) as err:
+            plt.close("all")
+            notes.append(f"figure_data of {domain} ({kind}, {cond}) not drawn: {err}")
+            continue
+        what = "2-D latent codes coloured by digit" if kind == "latent2d" else \
+            "PCA (first two components) of communication vectors coloured by agent ID"
+        fig.suptitle(f"{domain}, trial {trial}" + (f", {cond}" if cond != "all" else "") + f": {what}", fontsize=10)
+        stem = _safe(f"{domain}_{kind}_{cond}")
+        figures.append(Figure(stem, f"{domain}: {what}", f"Trial {trial}; each panel projected on its own.",
+                              _save(fig, out_dir, stem)))
+    return figures, notes
+
+
+def plot_all(result: StatsResult, out_dir: str | Path) -> tuple[list[Figure], list[str]]:
+    """Every figure the rows support, written under `out_dir` (…/figures). Returns figures and notes."""
+    out = Path(out_dir)
+    figures: list[Figure] = []
+    for domain in sorted(result.layouts):
+        fig = plot_metric_vs_paired(result, domain, out)
+        if fig:
+            figures.append(fig)
+        for knob in _numeric_knobs(result, domain):
+            figures.extend(plot_metric_vs_knob(result, domain, knob, out))
+            effect = plot_asp_effect_vs_knob(result, domain, knob, out)
+            if effect:
+                figures.append(effect)
+    scatter, notes = plot_figure_data(result, out)
+    return figures + scatter, notes
