@@ -1,0 +1,159 @@
+"""The MNIST VAE domain: contract, determinism, one smoke cell per method, and its own checks.
+
+Every budget is shrunk (a few hundred training images, tens of steps, a 64-unit VAE) so the
+file runs in seconds; the paper-size settings are exercised by bench/bench_vae.py instead."""
+
+import copy
+import json
+import math
+
+import pytest
+import torch
+
+from asp_dist.bases import train_accepted_base
+from asp_dist.cell import comparable, run_cell
+from asp_dist.domains import get_domain
+from asp_dist.domains.base import check_domain
+from asp_dist.domains.vae import VAE
+from asp_dist.spec import CellSpec, SpecError
+
+TINY = dict(domain="vae", vae_train_images=300, vae_hidden=64, vae_latent_dim=4, base_train_steps=40,
+            vae_base_batch=32, train_steps=20, batch_size=32, unpaired_size=64, eval_episodes=200,
+            disc_hidden=16)
+
+
+def tiny(**changes) -> CellSpec:
+    return CellSpec(**{**TINY, **changes})
+
+
+@pytest.fixture(scope="module")
+def domain():
+    return get_domain("vae")
+
+
+@pytest.fixture(scope="module")
+def base():
+    return train_accepted_base(tiny(paired=4))
+
+
+def test_contract(domain):
+    check_domain(domain, tiny(method="asp", paired=4))
+
+
+def test_defaults_follow_the_paper(domain):
+    spec = CellSpec(domain="vae").resolved()
+    assert (spec.vae_latent_dim, spec.vae_hidden, spec.base_train_steps, spec.vae_base_batch) == (32, 512, 5000, 128)
+    assert spec.unpaired_size == 2048 and spec.eval_episodes == 10_000 and spec.vae_train_images == 0
+    assert all(not m.higher_is_better for m in domain.metrics.values()), "every VAE metric is an MSE"
+
+
+def test_whole_cell_is_deterministic():
+    spec = tiny(method="asp", paired=4)
+    assert comparable(run_cell(spec)) == comparable(run_cell(spec))
+
+
+@pytest.mark.parametrize("method", ["pc", "osp", "asp"])
+def test_smoke_cell_per_method(method, base):
+    row = run_cell(tiny(method=method, paired=4), base=base)
+    for k in ("eval_mixed", "eval_mixed_base_encoder", "eval_mixed_new_encoder", "eval_self_play_new",
+              "eval_self_play_base", "eval_latent_mse"):
+        assert math.isfinite(row[k]) and row[k] >= 0, k
+    assert row["eval_mixed"] == pytest.approx((row["eval_mixed_base_encoder"] + row["eval_mixed_new_encoder"]) / 2)
+    assert row["eval_mixed_higher_is_better"] is False
+    assert row["base_score"] == pytest.approx(row["eval_self_play_base"])
+    assert (row["loss_unpaired"] is not None) == (method == "asp")
+    assert (row["loss_self_play"] is not None) == (method != "pc")
+
+
+def test_paired_tuples_are_the_base_mapping(domain, base):
+    spec = tiny(paired=5).resolved()
+    p = domain.paired(spec, base.agents, 5, torch.Generator().manual_seed(0))
+    assert p["image"].shape == (5, 784) and p["encoding"].shape == (5, 4) and p["recon"].shape == (5, 784)
+    assert 0.0 <= float(p["image"].min()) and float(p["image"].max()) <= 1.0
+    with torch.no_grad():
+        mu = base.agents.encode(p["image"])[0]
+        assert torch.allclose(p["encoding"], mu)
+        assert torch.allclose(p["recon"], base.agents.decode(mu))
+    u = domain.unpaired(spec, base.agents, 64, torch.Generator().manual_seed(1))
+    assert set(u) == {"latent"} and u["latent"].shape == (64, 4) and not u["latent"].requires_grad
+
+
+def test_a_copy_of_the_base_scores_its_own_self_play(domain, base):
+    spec = tiny().resolved()
+    m = domain.evaluate(spec, base.agents, copy.deepcopy(base.agents), torch.Generator().manual_seed(0))
+    assert m["latent_mse"] == 0.0
+    assert m["mixed"] == pytest.approx(m["self_play_base"]) == pytest.approx(m["self_play_new"])
+    assert m["self_play_base"] == pytest.approx(base.score)
+
+
+def test_base_learns_to_reconstruct(domain):
+    """40 small batches already bring the base well below an untrained VAE's error."""
+    spec = tiny().resolved()
+    trained, score = domain.train_base(spec, seed=0)
+    untrained = domain.new_agents(spec, seed=0)
+    m = domain.evaluate(spec, trained, untrained, torch.Generator().manual_seed(0))
+    assert score < 0.7 * m["self_play_new"]
+
+
+def test_pc_without_paired_data_does_not_train(domain, base):
+    spec = tiny(method="pc", paired=0)
+    row = run_cell(spec, base=base)
+    untrained = domain.new_agents(spec.resolved(), spec.seed_for("init"))
+    m = domain.evaluate(spec.resolved(), base.agents, untrained, torch.Generator().manual_seed(0))
+    assert row["eval_mixed"] == pytest.approx(m["mixed"])
+
+
+def test_paired_loss_pulls_the_new_vae_onto_the_base_mapping(domain, base):
+    spec = tiny(paired=8).resolved()
+    p = domain.paired(spec, base.agents, 8, torch.Generator().manual_seed(0))
+    agents = domain.new_agents(spec, seed=3)
+    opt = torch.optim.Adam(agents.parameters(), lr=3e-3)
+    first = float(domain.paired_loss(spec, agents, p).detach())
+    for _ in range(100):
+        loss = domain.paired_loss(spec, agents, p)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss.detach()) < 0.1 * first
+
+
+def test_self_play_outputs_are_the_encoder_means(domain):
+    spec = tiny().resolved()
+    agents = domain.new_agents(spec, seed=1)
+    out = domain.self_play_step(spec, agents, {}, torch.Generator().manual_seed(0))
+    assert out.outputs["latent"].shape == (spec.batch_size, 4) and out.outputs["latent"].requires_grad
+    assert out.loss.requires_grad and out.info["kl"] >= 0
+
+
+def test_figure_data_latent2d_and_reconstructions():
+    spec = tiny(method="asp", paired=2, vae_latent_dim=2, record_figure_data=True)
+    fig = json.loads(run_cell(spec)["figure_data"])
+    assert fig["kind"] == "latent2d"
+    assert len(fig["base"]) == len(fig["new"]) == len(fig["labels"]) == 1000
+    assert all(len(xy) == 2 for xy in fig["base"][:5])
+    assert fig["labels"][:4] == [7, 2, 1, 0]
+    recon = fig["recon"]
+    assert recon["labels"] == list(range(10))
+    for key in ("original", "base", "new", "base_encoder_new_decoder", "new_encoder_base_decoder"):
+        assert len(recon[key]) == 10 and len(recon[key][0]) == 784
+        assert 0 <= min(min(r) for r in recon[key]) and max(max(r) for r in recon[key]) <= 255
+    other = json.loads(run_cell(tiny(method="pc", paired=2, record_figure_data=True))["figure_data"])
+    assert other["kind"] == "vae_recon" and "base" not in other
+    assert run_cell(tiny(method="pc", paired=2))["figure_data"] is None
+
+
+def test_invalid_knobs_are_spec_errors():
+    with pytest.raises(SpecError, match="vae_train_images"):
+        tiny(vae_train_images=70_000).resolved()
+    with pytest.raises(SpecError, match="eval_episodes"):
+        tiny(eval_episodes=20_000).resolved()
+    with pytest.raises(SpecError, match="vae_latent_dim"):
+        tiny(vae_latent_dim=0).resolved()
+
+
+def test_vae_module_shapes():
+    vae = VAE(latent_dim=3, hidden=8)
+    mu, logvar = vae.encode(torch.rand(5, 784))
+    assert mu.shape == logvar.shape == (5, 3)
+    out = vae.decode(mu)
+    assert out.shape == (5, 784) and float(out.min()) >= 0 and float(out.max()) <= 1
