@@ -1,0 +1,57 @@
+"""Content-addressed cache of base models shared by every cell of a sweep.
+
+One file per ``CellSpec.base_key`` (``<cache_dir>/<base_key>.pt``). The first cell that needs a
+base trains it while holding an exclusive ``fcntl`` lock on ``.<base_key>.lock``; a second cell
+asking at the same time blocks on the lock, then finds the file and loads it. The file appears
+through an atomic rename, so a reader never sees half a base, and a crash while training leaves
+only a stale temp file (the lock dies with its process). Works on one machine and on a shared
+filesystem with POSIX locks (local disk, NFSv4).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import tempfile
+from pathlib import Path
+
+from asp_dist.bases import BaseModel, base_from_bytes, base_to_bytes, train_accepted_base
+from asp_dist.domains.base import Progress
+from asp_dist.spec import CellSpec
+
+
+def base_path(cache_dir: Path, base_key: str) -> Path:
+    return Path(cache_dir) / f"{base_key}.pt"
+
+
+def _load(path: Path, spec: CellSpec) -> BaseModel:
+    base = base_from_bytes(path.read_bytes())
+    if base.key != spec.base_key:
+        raise ValueError(f"base cache file {path} holds base {base.key}, expected {spec.base_key}")
+    return base
+
+
+def get_base(spec: CellSpec, cache_dir: Path, progress: Progress | None = None) -> tuple[BaseModel, bool]:
+    """The cell's base: loaded from the cache, or trained once and stored. Returns (base, was_cached)."""
+    spec = spec.resolved()
+    cache_dir = Path(cache_dir)
+    path = base_path(cache_dir, spec.base_key)
+    if path.exists():
+        return _load(path, spec), True
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with open(cache_dir / f".{spec.base_key}.lock", "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # waits while another cell trains this base
+        try:
+            if path.exists():
+                return _load(path, spec), True
+            base = train_accepted_base(spec, progress)
+            fd, tmp = tempfile.mkstemp(prefix=f".{spec.base_key}.", suffix=".tmp", dir=cache_dir)
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(base_to_bytes(base))
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+            return base, False
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+

@@ -1,0 +1,148 @@
+"""Named grids ("spaces"): load ``tune_spaces/<name>.toml`` and expand it into resolved cells.
+
+A space file is small and readable (stdlib ``tomllib``)::
+
+    description = "what this grid is for"
+    include = ["paper-particles"]      # optional: add the cells of other spaces
+
+    [fixed]                            # optional: CellSpec overrides for every grid below
+    root_seed = 0
+
+    [[grid]]                           # one or more sub-grids; cells = union over grids
+    name = "paired-count"
+    fixed = { vae_latent_dim = 32 }    # optional: overrides for this grid only
+    [grid.axes]                        # cartesian product, any CellSpec field
+    domain = ["vae"]
+    method = ["pc", "osp", "asp"]
+    paired = [0, 1, 2, 4, 8, 16, 32, 64]
+    trial  = { first = 0, last = 9 }   # inclusive integer range
+
+Expansion validates every value through ``CellSpec`` (types, ranges, domain rules), rejects
+domains whose module is not in this installation, drops duplicate cells (two sub-grids may
+share cells) and orders cells by (domain, trial, paired, method) so that the cells sharing a
+base run close together. The grid hash is a stable hash of the sorted cell ids.
+"""
+
+from __future__ import annotations
+
+import itertools
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from asp_dist.spec import CellSpec, SpecError, coerce_field, stable_hash
+
+SPACE_KEYS = {"description", "include", "fixed", "grid"}
+GRID_KEYS = {"name", "fixed", "axes"}
+
+
+class SweepError(SpecError):
+    """A sweep that cannot start or continue; the message says what to fix.
+
+    A SpecError (hence a ValueError), so the CLI reports it as one line with exit code 2."""
+
+
+def spaces_dir() -> Path:
+    """``tune_spaces/`` next to the package (a source checkout or an editable install)."""
+    return Path(__file__).resolve().parent.parent / "tune_spaces"
+
+
+def known_spaces() -> list[str]:
+    d = spaces_dir()
+    return sorted(p.stem for p in d.glob("*.toml")) if d.exists() else []
+
+
+def space_file(name_or_path: str) -> Path:
+    """A space by name (``smoke``) or by path to a .toml file."""
+    as_path = Path(name_or_path)
+    if as_path.suffix == ".toml" or "/" in name_or_path:
+        if not as_path.is_file():
+            raise SweepError(f"space file {name_or_path} does not exist")
+        return as_path
+    path = spaces_dir() / f"{name_or_path}.toml"
+    if not path.is_file():
+        raise SweepError(f"unknown space {name_or_path!r}; choose one of {', '.join(known_spaces())} "
+                         f"or pass a path to a .toml file")
+    return path
+
+
+def _axis_values(space: str, field: str, raw: Any) -> list[Any]:
+    if isinstance(raw, dict):
+        if set(raw) != {"first", "last"} or not all(isinstance(v, int) for v in raw.values()):
+            raise SweepError(f"space {space}: axis {field} must be a list or {{ first = INT, last = INT }}, got {raw!r}")
+        if raw["last"] < raw["first"]:
+            raise SweepError(f"space {space}: axis {field} has last < first ({raw!r})")
+        return list(range(raw["first"], raw["last"] + 1))
+    if not isinstance(raw, list) or not raw:
+        raise SweepError(f"space {space}: axis {field} must be a non-empty list, got {raw!r}")
+    return raw
+
+
+def _coerce(space: str, field: str, value: Any) -> Any:
+    try:
+        return coerce_field(field, value)
+    except SpecError as e:
+        raise SweepError(f"space {space}: {e}") from None
+
+
+def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str, Any]]:
+    """The raw (unresolved) cell dicts of a space, includes expanded."""
+    path = space_file(name_or_path)
+    space = path.stem
+    if space in _seen:
+        raise SweepError(f"space {space} includes itself (via {' -> '.join(_seen)})")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SweepError(f"space {space}: invalid TOML in {path}: {e}") from None
+    unknown = sorted(set(data) - SPACE_KEYS)
+    if unknown:
+        raise SweepError(f"space {space}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(SPACE_KEYS))}")
+    cells: list[dict[str, Any]] = []
+    for included in data.get("include", []):
+        cells += load_space(included, _seen + (space,))
+    fixed = {k: _coerce(space, k, v) for k, v in data.get("fixed", {}).items()}
+    grids = data.get("grid", [])
+    if not grids and not data.get("include"):
+        raise SweepError(f"space {space}: needs at least one [[grid]] or an include list")
+    for i, grid in enumerate(grids):
+        label = f"{space}[{grid.get('name', i)}]"
+        unknown = sorted(set(grid) - GRID_KEYS)
+        if unknown:
+            raise SweepError(f"space {label}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(GRID_KEYS))}")
+        grid_fixed = {**fixed, **{k: _coerce(label, k, v) for k, v in grid.get("fixed", {}).items()}}
+        axes = {k: [_coerce(label, k, v) for v in _axis_values(label, k, raw)] for k, raw in grid.get("axes", {}).items()}
+        overlap = sorted(set(axes) & set(grid_fixed))
+        if overlap:
+            raise SweepError(f"space {label}: {', '.join(overlap)} is both an axis and fixed; keep one")
+        for combo in itertools.product(*axes.values()):
+            cells.append({**grid_fixed, **dict(zip(axes, combo))})
+    return cells
+
+
+def expand(name_or_path: str) -> list[CellSpec]:
+    """Resolved, validated, de-duplicated cells of a space, in a base-friendly order."""
+    from asp_dist.domains import DOMAINS, available_domains
+
+    space = space_file(name_or_path).stem
+    raw = load_space(name_or_path)
+    available = set(available_domains())
+    # Known but absent domains get their own message; unknown names fail in CellSpec validation.
+    missing = sorted(({c.get("domain", CellSpec.domain) for c in raw} & set(DOMAINS)) - available)
+    if missing:
+        raise SweepError(f"space {space} needs domain(s) {', '.join(missing)}, not implemented yet in this "
+                         f"installation; available: {', '.join(sorted(available))}")
+    specs: dict[str, CellSpec] = {}
+    for cell in raw:
+        try:
+            spec = CellSpec.from_dict(cell).resolved()
+        except SpecError as e:
+            raise SweepError(f"space {space}: {e}") from None
+        specs.setdefault(spec.cell_id, spec)
+    if not specs:
+        raise SweepError(f"space {space} has no cells")
+    return sorted(specs.values(), key=lambda s: (s.domain, s.root_seed, s.trial, s.paired, s.method, s.cell_id))
+
+
+def grid_hash(specs: list[CellSpec]) -> str:
+    return stable_hash(sorted(s.cell_id for s in specs))[:16]
