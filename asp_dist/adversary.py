@@ -59,7 +59,7 @@ class Adversaries(nn.Module):
             loss = discriminator_loss(disc, real[ch], fake[ch])
             loss.backward()
             opt.step()
-            total += float(loss)
+            total += float(loss.detach())
         return total / max(len(self.discs), 1)
 
     def model_loss(self, fake: dict[str, torch.Tensor], kind: str) -> torch.Tensor:

@@ -1,0 +1,83 @@
+"""run_cell end to end on the signaling game: determinism, checkpoint/restore, row contents."""
+
+import io
+import json
+
+import pytest
+import torch
+
+from asp_dist.bases import base_from_bytes, base_to_bytes, train_accepted_base
+from asp_dist.cell import VOLATILE_COLUMNS, comparable, run_cell
+from asp_dist.spec import FIELD_NAMES
+
+
+@pytest.mark.parametrize("method", ["pc", "osp", "asp"])
+def test_smoke_cell_per_method(tiny_signaling, method):
+    row = run_cell(tiny_signaling.replace(method=method))
+    assert row["method"] == method and row["domain"] == "signaling"
+    assert 0.0 <= row["eval_mixed"] <= 1.0
+    assert row["eval_mixed"] == pytest.approx((row["eval_mixed_base_speaker"] + row["eval_mixed_new_speaker"]) / 2)
+    assert row["eval_self_play_base"] == 1.0
+    assert row["eval_mixed_higher_is_better"] is True
+    assert set(FIELD_NAMES) <= set(row)
+    assert row["time_train_wall_s"] > 0 and row["time_total_cpu_s"] > 0
+    assert (row["loss_unpaired"] is not None) == (method == "asp")
+    assert (row["loss_self_play"] is not None) == (method != "pc")
+
+
+def test_whole_cell_is_deterministic(tiny_signaling):
+    a, b = run_cell(tiny_signaling), run_cell(tiny_signaling)
+    assert comparable(a) == comparable(b)
+    assert set(a) - set(comparable(a)) <= VOLATILE_COLUMNS
+
+
+def test_shared_base_gives_the_same_row_as_training_it(tiny_signaling):
+    base = base_from_bytes(base_to_bytes(train_accepted_base(tiny_signaling)))
+    assert comparable(run_cell(tiny_signaling, base=base)) == comparable(run_cell(tiny_signaling))
+
+
+def test_base_for_other_settings_is_refused(tiny_signaling):
+    base = train_accepted_base(tiny_signaling.replace(trial=5))
+    with pytest.raises(ValueError, match="other settings"):
+        run_cell(tiny_signaling, base=base)
+
+
+@pytest.mark.parametrize("method", ["osp", "asp"])
+def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
+    spec = tiny_signaling.replace(method=method)
+    saved = []
+
+    def keep(state):  # through bytes, as a checkpoint on disk would be
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        saved.append(buf.getvalue())
+
+    uninterrupted = run_cell(spec, checkpoint=keep, checkpoint_every_steps=20)
+    assert len(saved) == 2  # steps 20 and 40 of 60
+    for blob in saved:
+        state = torch.load(io.BytesIO(blob), weights_only=False)
+        resumed = run_cell(spec, restore=state)
+        assert resumed["resumed_from_step"] == state["trainer"]["step"]
+        assert comparable(resumed) == comparable(uninterrupted)
+
+
+def test_checkpoint_of_another_cell_is_refused(tiny_signaling):
+    states = []
+    run_cell(tiny_signaling, checkpoint=states.append, checkpoint_every_steps=30)
+    with pytest.raises(ValueError, match="belongs to cell"):
+        run_cell(tiny_signaling.replace(trial=1), restore=states[0])
+
+
+def test_progress_is_reported(tiny_signaling):
+    seen = []
+    run_cell(tiny_signaling, progress=lambda phase, done, total, info: seen.append((phase, done, total)))
+    train = [s for s in seen if s[0] == "train"]
+    assert train[-1][1:] == (60, 60) and len(train) >= 10
+    assert seen[-1][0] == "eval"
+
+
+def test_metric_directions_are_recorded(tiny_signaling):
+    row = run_cell(tiny_signaling)
+    directions = json.loads(row["metric_directions"])
+    assert directions["mixed"] == "higher"
+    assert {f"eval_{k}" for k in directions} <= set(row)
