@@ -435,7 +435,57 @@ def efficiency_tables(rows: pd.DataFrame, summary: pd.DataFrame, cfg: StatsConfi
     return eff, claim
 
 
+def knob_trends(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> list[dict]:
+    """Does ASP's advantage grow with a numeric knob (e.g. skew)? Spearman's rho between the knob
+    and the per-block difference ASP − other (all paired counts), per value of the other knobs."""
+    out = []
+    sign = 1.0 if layout.higher_is_better else -1.0
+    for knob in layout.shared_knobs:
+        values = pd.to_numeric(rows[knob], errors="coerce")
+        if values.isna().any() or values.nunique() < 3:
+            continue  # a rank correlation over two knob values says little; the tables show them
+        others = [k for k in layout.shared_knobs if k != knob]
+        groups = rows.groupby(others, sort=True, dropna=False) if others else [("", rows)]
+        for key, g in groups:
+            fixed = ", ".join(f"{k}={_fmt_value(v)}" for k, v in zip(others, key if isinstance(key, tuple) else (key,))) \
+                if others else "all"
+            treatments = treatment_order(g["treatment"])
+            for a in (t for t in treatments if is_asp(t)):
+                for b in (t for t in treatments if not is_asp(t)):
+                    wide = g.pivot_table(index=["root_seed", "trial", "paired", knob], columns="treatment",
+                                         values="score", aggfunc="mean")
+                    if a not in wide or b not in wide:
+                        continue
+                    diff = (wide[a] - wide[b]).dropna()
+                    if len(diff) < 3:
+                        continue
+                    x = diff.index.get_level_values(knob).astype(float)
+                    rho, p = sps.spearmanr(x, diff.to_numpy())
+                    lo_v, hi_v = x.min(), x.max()
+                    out.append({"domain": layout.domain, "knob": knob, "fixed": fixed, "a": a, "b": b,
+                                "n_blocks": int(len(diff)), "spearman_rho": float(rho), "p_value": float(p),
+                                f"median_diff_at_min": sign * float(np.median(diff[x == lo_v])),
+                                f"median_diff_at_max": sign * float(np.median(diff[x == hi_v])),
+                                "knob_min": float(lo_v), "knob_max": float(hi_v)})
+    return out
+
+
 # ---- completeness ---------------------------------------------------------------------------------
+
+def read_failures(sweep_dir: Path) -> dict[str, str]:
+    """cell_id -> last line of the error, from the sweep service's failed/<cell_id>.json records."""
+    out = {}
+    for path in sorted((Path(sweep_dir) / "failed").glob("*.json")):
+        if path.name.startswith((".", "_")):
+            continue
+        try:
+            info = json.loads(path.read_text())
+            lines = str(info.get("error", "")).strip().splitlines()
+            out[str(info.get("cell_id", path.stem))] = (lines[-1] if lines else "failed")[:160]
+        except (OSError, ValueError, AttributeError):
+            out[path.stem] = "failed (unreadable record)"
+    return out
+
 
 CELL_ID = re.compile(r"^(?P<domain>[a-z]+)-(?P<method>[a-z]+)-p(?P<paired>\d+)-t(?P<trial>\d+)-")
 
@@ -456,13 +506,18 @@ def completeness(rows: pd.DataFrame, inputs: Inputs | None) -> tuple[pd.DataFram
                 if cells_dir in f.parents:
                     schema = pq.read_schema(f)
                     found.update(pq.read_table(f, columns=["cell_id"]).column(0).to_pylist() if "cell_id" in schema.names else [f.stem])
+            failed = read_failures(sweep)
             gone = [c for c in dict.fromkeys(expected) if c not in found]
             notes.append(f"{sweep.name}: {len(set(expected)) - len(gone)} of {len(set(expected))} planned cells finished"
                          + (f", {len(gone)} missing" if gone else ""))
             for cid in gone:
                 m = CELL_ID.match(cid)
-                missing.append({"sweep": sweep.name, "kind": "not finished (manifest)", "cell_id": cid,
+                error = failed.get(cid)
+                missing.append({"sweep": sweep.name, "kind": "failed" if error else "not finished (manifest)",
+                                "cell_id": cid, "error": error,
                                 **({k: (int(v) if k in ("paired", "trial") else v) for k, v in m.groupdict().items()} if m else {})})
+            if failed:
+                notes.append(f"{sweep.name}: {len(failed)} cell(s) recorded as failed under failed/")
     for (domain, cond), g in rows.groupby(["domain", "condition"], sort=True):
         treatments = treatment_order(g["treatment"])
         for (seed, trial, paired), b in g.groupby(["root_seed", "trial", "paired"], sort=True):
@@ -470,7 +525,7 @@ def completeness(rows: pd.DataFrame, inputs: Inputs | None) -> tuple[pd.DataFram
                 if t not in set(b["treatment"]):
                     missing.append({"sweep": "", "kind": "incomplete block", "cell_id": None, "domain": domain,
                                     "method": t, "paired": int(paired), "trial": int(trial), "condition": cond})
-    cols = ["sweep", "kind", "domain", "condition", "method", "paired", "trial", "cell_id"]
+    cols = ["sweep", "kind", "domain", "condition", "method", "paired", "trial", "cell_id", "error"]
     df = pd.DataFrame(missing, columns=cols)
     # A manifest-missing cell also leaves its block incomplete; keep both views, they answer different questions.
     return df, notes
@@ -502,7 +557,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
     if rows.empty:
         raise SpecError("no rows with a metric value to analyse")
     layouts, labelled = {}, []
-    parts = {k: [] for k in ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n")}
+    parts = {k: [] for k in ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "knob_trend")}
     for domain, g in rows.groupby("domain", sort=True):
         layout = domain_layout(g, cfg.metric)
         layouts[domain] = layout
@@ -517,6 +572,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
         eff, claim = efficiency_tables(g, summary, cfg, layout)
         parts["efficiency"].append(pd.DataFrame(eff))
         parts["claim_2n"].append(pd.DataFrame(claim))
+        parts["knob_trend"].append(pd.DataFrame(knob_trends(g, cfg, layout)))
     all_rows = pd.concat(labelled, ignore_index=True)
     tables = {name: (pd.concat([p for p in dfs if not p.empty], ignore_index=True) if any(not p.empty for p in dfs)
                      else pd.DataFrame()) for name, dfs in parts.items()}

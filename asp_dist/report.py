@@ -1,0 +1,274 @@
+"""report.md: what was run, whether ASP beat OSP and PC (where, and how sure), tables, figures, tests.
+
+The report is written from the stats tables only (no recomputation), so it always agrees with
+``stats/*.parquet``. The top section answers the question at a glance; the rest documents.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+from asp_dist.plots import Figure
+from asp_dist.stats import StatsResult, _cell, is_asp, to_markdown, treatment_order
+
+# The paper's claims, to say next to our verdicts whether they held.
+PAPER_CLAIMS = {
+    "particles": "ASP better than OSP and PC over 2–4 paired (Friedman, p < 0.01 each)",
+    "levers": "ASP better than OSP (p < 0.05) and PC (p < 0.01) over 4–8 paired (Friedman)",
+    "vae": "ASP better reconstructions than OSP and PC at intermediate paired counts; robust to latent size",
+    "signaling": "(policy-space analysis) ASP prunes more conventions, so helps more, the more skewed the tokens",
+}
+
+
+def _p(p: float) -> str:
+    if p is None or (isinstance(p, float) and np.isnan(p)):
+        return "–"
+    return f"{p:.2g}" if p >= 1e-3 else f"{p:.1e}"
+
+
+def pair_verdict(rec: pd.Series, alpha: float) -> str:
+    """'**better**', '**worse**' or 'n.s.' for ASP (rec.a) against rec.b, with the evidence."""
+    evidence = (f"Δ {rec['median_diff']:+.3g}, {rec['wins_a']}–{rec['ties']}–{rec['wins_b']} of {rec['n_blocks']}, "
+                f"p_Holm {_p(rec['p_holm'])}")
+    if rec["significant"] and rec["better"] == rec["a"]:
+        return f"**better** ({evidence})"
+    if rec["significant"] and rec["better"] == rec["b"]:
+        return f"**worse** ({evidence})"
+    return f"n.s. ({evidence})"
+
+
+def glance_table(result: StatsResult) -> pd.DataFrame:
+    tests, pairwise = result.tables["tests"], result.tables["pairwise"]
+    out = []
+    if tests.empty:
+        return pd.DataFrame()
+    for rec in tests.to_dict("records"):
+        row = {"domain": rec["domain"], "condition": rec["condition"], "paired range": rec["paired_range"],
+               "blocks": rec.get("n_blocks", 0),
+               "omnibus": f"{rec['test']} p {_p(rec.get('p_value'))}" if rec["test"] != "none" else rec.get("note", "")}
+        pw = pairwise[(pairwise["domain"] == rec["domain"]) & (pairwise["condition"] == rec["condition"])] \
+            if not pairwise.empty else pairwise
+        for _, p in pw.iterrows():
+            if is_asp(p["a"]) and not is_asp(p["b"]):
+                row[f"{p['a'].upper()} vs {p['b'].upper()}"] = pair_verdict(p, result.config.alpha)
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def headline_sentences(result: StatsResult) -> list[str]:
+    """One plain sentence per (domain, condition): did ASP beat both, one, or neither."""
+    lines = []
+    pairwise = result.tables["pairwise"]
+    if pairwise.empty:
+        return ["No condition had two methods with complete blocks to compare."]
+    for (domain, cond), g in pairwise.groupby(["domain", "condition"], sort=True):
+        asp_pairs = g[g["a"].map(is_asp) & ~g["b"].map(is_asp)]
+        if asp_pairs.empty:
+            lines.append(f"- **{domain}** ({cond}): no ASP rows to compare.")
+            continue
+        beaten = [p["b"].upper() for _, p in asp_pairs.iterrows() if p["significant"] and p["better"] == p["a"]]
+        lost = [p["b"].upper() for _, p in asp_pairs.iterrows() if p["significant"] and p["better"] == p["b"]]
+        others = [p["b"].upper() for _, p in asp_pairs.iterrows()]
+        rng = asp_pairs["paired_range"].iloc[0]
+        if beaten and len(beaten) == len(others):
+            verdict = f"ASP beat {' and '.join(beaten)}"
+        elif beaten:
+            verdict = f"ASP beat {' and '.join(beaten)}, not significantly different from the rest"
+        else:
+            verdict = "no significant advantage for ASP"
+        if lost:
+            verdict += f"; ASP was significantly worse than {' and '.join(lost)}"
+        ps = ", ".join(f"{p['b'].upper()} p_Holm {_p(p['p_holm'])}" for _, p in asp_pairs.iterrows())
+        lines.append(f"- **{domain}** ({cond}, paired {rng}): {verdict} ({ps}; α = {result.config.alpha}).")
+    return lines
+
+
+def where_table(result: StatsResult) -> pd.DataFrame:
+    """Paired counts x (condition, opponent): ✓ ASP significantly better, ✗ worse, + / − direction only."""
+    bp = result.tables["by_paired"]
+    if bp.empty:
+        return pd.DataFrame()
+    out = []
+    for (domain, cond, paired), g in bp.groupby(["domain", "condition", "paired"], sort=True):
+        row = {"domain": domain, "condition": cond, "paired": int(paired)}
+        for _, p in g.iterrows():
+            mark = "=" if p["better"] == "tie" else ("+" if p["better"] == p["a"] else "−")
+            if p["significant"]:
+                mark = "✓" if p["better"] == p["a"] else "✗"
+            row[f"{p['a']} vs {p['b']}"] = f"{mark} {p['median_diff']:+.3g}"
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def grid_description(result: StatsResult) -> pd.DataFrame:
+    out = []
+    for domain, layout in sorted(result.layouts.items()):
+        rows = result.rows[result.rows["domain"] == domain]
+        knobs = {k: sorted(rows[k].dropna().unique().tolist()) for k in layout.shared_knobs}
+        for m, ks in layout.method_knobs.items():
+            for k in ks:
+                knobs[f"{k} ({m})"] = sorted(rows.loc[rows["method"] == m, k].dropna().unique().tolist())
+        out.append({"domain": domain, "rows": len(rows),
+                    "methods": ", ".join(treatment_order(rows["treatment"])),
+                    "paired": ", ".join(str(p) for p in sorted(rows["paired"].unique())),
+                    "trials": f"{rows['trial'].nunique()} ({rows['trial'].min()}–{rows['trial'].max()})",
+                    "varied knobs": "; ".join(f"{k} = {', '.join(_cell(v) for v in vs)}" for k, vs in knobs.items()) or "none",
+                    "direction": "higher is better" if layout.higher_is_better else "lower is better",
+                    "sweeps": ", ".join(sorted(rows["sweep_id"].dropna().astype(str).unique())) if "sweep_id" in rows else "–"})
+    return pd.DataFrame(out)
+
+
+def _summary_compact(summary: pd.DataFrame) -> pd.DataFrame:
+    s = summary.copy()
+    s["median [Q1, Q3]"] = [f"{m:.4g} [{a:.4g}, {b:.4g}]" for m, a, b in zip(s["median"], s["q1"], s["q3"])]
+    s["95% CI of median"] = [f"[{a:.4g}, {b:.4g}]" for a, b in zip(s["ci_low"], s["ci_high"])]
+    s["mean ± sd"] = [f"{m:.4g} ± {_cell(sd, 3)}" for m, sd in zip(s["mean"], s["std"])]
+    return s[["condition", "treatment", "paired", "n", "median [Q1, Q3]", "95% CI of median", "mean ± sd"]]
+
+
+def min_wilcoxon_p(n: int) -> float:
+    """Smallest two-sided p an exact Wilcoxon signed-rank test can give with n non-zero differences."""
+    return 2.0 / 2 ** n if n > 0 else 1.0
+
+
+def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Figure] = (),
+                 figure_notes: Sequence[str] = (), sources: Sequence[str] = (), command: str = "") -> Path:
+    out_dir = Path(out_dir)
+    cfg, t = result.config, result.tables
+    parts: list[str] = []
+    name = ", ".join(sorted(result.rows["sweep_id"].dropna().astype(str).unique())) \
+        if "sweep_id" in result.rows and result.rows["sweep_id"].notna().any() else out_dir.name
+    parts.append(f"# Sweep report: {name}\n\n")
+    parts.append(f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} from {len(result.rows)} rows"
+                 + (f" ({len(result.inputs.files)} files)" if result.inputs else "")
+                 + f". Metric: `{cfg.metric}`; α = {cfg.alpha}; bootstrap {cfg.n_boot} resamples, seed {cfg.seed}."
+                 + (f" Command: `{command}`." if command else "") + "\n\n")
+
+    parts.append("## At a glance: did ASP beat OSP and PC?\n\n")
+    parts.extend(line + "\n" for line in headline_sentences(result))
+    parts.append("\n" + to_markdown(glance_table(result)))
+    parts.append("\n*better / worse*: the Holm-corrected Wilcoxon signed-rank test over blocks (trial, paired) is below α "
+                 "and, with three or more methods, the Friedman test is too. Δ = median paired difference ASP − other in "
+                 "metric units; a–t–b = blocks ASP better – tied – worse.\n")
+    claims = [f"- {d}: the paper reports: {PAPER_CLAIMS[d]}." for d in sorted(result.layouts) if d in PAPER_CLAIMS]
+    if claims:
+        parts.append("\nFor comparison, the paper's findings:\n\n" + "\n".join(claims) + "\n")
+    trend = t.get("knob_trend", pd.DataFrame())
+    if not trend.empty:
+        parts.append("\n**Does ASP's advantage grow with the knob?** Spearman's ρ between the knob and the per-block "
+                     "difference ASP − other (all paired counts):\n\n")
+        parts.append(to_markdown(trend, ["domain", "knob", "fixed", "a", "b", "n_blocks", "spearman_rho", "p_value",
+                                         "knob_min", "median_diff_at_min", "knob_max", "median_diff_at_max"]))
+
+    parts.append("\n### Where: ASP against each method at every paired count\n\n")
+    parts.append("✓ / ✗: ASP significantly better / worse (Wilcoxon, Holm over all counts and opponents of the "
+                 "condition); + / − / =: direction of the median difference only.\n\n")
+    parts.append(to_markdown(where_table(result)))
+    bp = t["by_paired"]
+    if not bp.empty:
+        smallest_n = int(bp["n_blocks"].min())
+        parts.append(f"\nWith {smallest_n} blocks per count, the smallest possible two-sided Wilcoxon p is "
+                     f"{_p(min_wilcoxon_p(smallest_n))} before correction: per-count tests need more trials to "
+                     "reach significance than the pooled test above.\n")
+
+    parts.append("\n### Paired-data efficiency: does ASP with n match or beat the others with 2n?\n\n")
+    claim = t["claim_2n"]
+    if claim.empty:
+        parts.append("_Not testable: no paired counts n and 2n both present for ASP and another method._\n")
+    else:
+        for (domain, cond, other), g in claim.groupby(["domain", "condition", "other"], sort=True):
+            held = [str(n) for n, h in zip(g["n"], g["holds"]) if h]
+            sure = [str(n) for n, v in zip(g["n"], g["verdict"]) if v.startswith("beats")]
+            parts.append(f"- {domain} ({cond}) vs {other.upper()}: holds (medians) at n = {', '.join(held) or 'none'}"
+                         f" of {', '.join(str(n) for n in g['n'])}; with the paired difference's 95 % interval above 0 at "
+                         f"n = {', '.join(sure) or 'none'}.\n")
+        parts.append("\n" + to_markdown(claim, ["domain", "condition", "asp", "other", "n", "two_n", "median_asp_n",
+                                                "median_other_2n", "n_trials", "median_diff", "diff_ci_low",
+                                                "diff_ci_high", "verdict"]))
+    parts.append("\nSmallest paired count whose median reaches the threshold:\n\n")
+    parts.append(to_markdown(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
+                                               "min_paired_reaching", "median_there"]))
+
+    parts.append("\n## What was run\n\n")
+    parts.append(to_markdown(grid_description(result)))
+    missing = t["missing"]
+    notes = list(result.notes) + list(figure_notes)
+    if notes:
+        parts.append("\n" + "\n".join(f"- {n}" for n in notes) + "\n")
+    if missing.empty:
+        parts.append("\nNo missing cells: every planned cell finished and every block has every method.\n")
+    else:
+        parts.append(f"\n**Missing: {len(missing)} entries** (see `stats/missing.md` for all):\n\n")
+        parts.append(to_markdown(missing.head(40)))
+        if len(missing) > 40:
+            parts.append(f"\n… and {len(missing) - 40} more.\n")
+    if sources:
+        parts.append("\nInputs: " + ", ".join(f"`{s}`" for s in sources) + "\n")
+
+    parts.append("\n## Figures\n\n")
+    if not figures:
+        parts.append("_No figures._\n")
+    for fig in figures:
+        png = next(p for p in fig.paths if p.suffix == ".png")
+        rel = os.path.relpath(png, out_dir)
+        parts.append(f"### {fig.title}\n\n![{fig.title}]({rel})\n\n{fig.caption} "
+                     f"([SVG]({os.path.relpath(png.with_suffix('.svg'), out_dir)}))\n\n")
+
+    parts.append("## Tables\n\n")
+    for domain in sorted(result.layouts):
+        s = t["summary"][t["summary"]["domain"] == domain]
+        parts.append(f"### {domain}: per-group statistics of `{cfg.metric}` "
+                     f"({'higher' if result.layouts[domain].higher_is_better else 'lower'} is better)\n\n")
+        parts.append(to_markdown(_summary_compact(s)))
+    parts.append("\n### Rank tests over the paired range\n\n")
+    parts.append(to_markdown(t["tests"], ["domain", "condition", "paired_range", "treatments", "n_blocks",
+                                          "n_blocks_incomplete", "test", "statistic", "p_value", "kendall_w",
+                                          "mean_ranks", "note"]))
+    parts.append("\n### Pairwise post-hoc (Nemenyi; Wilcoxon signed-rank with Holm)\n\n")
+    parts.append(to_markdown(t["pairwise"], ["domain", "condition", "a", "b", "n_blocks", "median_a", "median_b",
+                                             "median_diff", "wins_a", "ties", "wins_b", "p_nemenyi", "p_wilcoxon",
+                                             "p_holm", "better", "significant"]))
+    parts.append("\nEvery table is also in `stats/<name>.parquet` and `stats/<name>.md` "
+                 "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, missing).\n")
+
+    parts.append("\n## The tests\n\n" + METHODS_TEXT.format(alpha=cfg.alpha, n_boot=cfg.n_boot, ci=int(cfg.ci * 100),
+                                                            seed=cfg.seed,
+                                                            ranges=json.dumps({k: list(v) if v else "all" for k, v in
+                                                                               cfg.paired_ranges.items()})))
+    path = out_dir / "report.md"
+    tmp = out_dir / ".report.md.tmp"
+    tmp.write_text("".join(parts))
+    tmp.replace(path)
+    return path
+
+
+METHODS_TEXT = """\
+- **Blocks.** Within one trial and paired count, PC, OSP and ASP share the base model, the
+  paired and unpaired sets and the initial weights, so every comparison is paired over blocks
+  (root_seed, trial, paired); blocks missing a method are left out (counted as incomplete).
+- **Per-group statistics.** n, median, first and third quartile (linear interpolation), mean,
+  sample standard deviation, and a {ci} % percentile-bootstrap interval of the median
+  ({n_boot} resamples, seeded from seed {seed} and the group's key, so reruns give the same interval).
+- **Omnibus test.** Friedman's χ² over blocks in the domain's paired range ({ranges};
+  others: every count), with three or more methods; Kendall's W = χ² / (n (k − 1)) as effect
+  size. With exactly two methods, the Wilcoxon signed-rank test over blocks instead.
+- **Post-hoc.** Nemenyi's test after Friedman (scikit-posthocs `posthoc_nemenyi_friedman`), and,
+  as a second view, two-sided Wilcoxon signed-rank tests of every pair (zero differences dropped)
+  with Holm's correction over the pairs. A pair is called significant when the Holm p is below
+  α = {alpha} (and the Friedman p as well).
+- **Per paired count.** Wilcoxon signed-rank of ASP against each other method at each count,
+  Holm-corrected over all counts and opponents of the condition.
+- **Data efficiency.** The smallest paired count whose group median reaches the threshold; and
+  the paper's claim, checked directly: median of ASP at n against the other method at 2n, with
+  a bootstrap interval of the median per-trial difference.
+- **Trend with a knob.** Spearman's ρ between a numeric knob (≥ 3 values) and the per-block
+  difference ASP − other.
+- Metric directions come from the rows (`<metric>_higher_is_better`, `metric_directions`).
+"""

@@ -1,0 +1,316 @@
+"""The statistics job on synthetic rows with known answers.
+
+`make_rows` / `write_sweep` build sweeps without training anything; test_query.py and
+test_plots.py import them from here.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from asp_dist.query import SchemaMismatch, load_rows, open_inputs
+from asp_dist.spec import SpecError
+from asp_dist.stats import (StatsConfig, bootstrap_median_ci, compute, friedman, holm, nemenyi, quartiles,
+                            run_stats, wilcoxon, write_tables)
+
+EFFECT = {"pc": 0.0, "osp": 0.5, "asp": 1.0}
+
+
+def make_rows(domain: str = "signaling", methods=("pc", "osp", "asp"), paired=(0, 1, 2, 4), trials=range(8),
+              effect: dict | None = None, noise: float = 0.3, higher: bool = True, seed: int = 0,
+              knobs: dict | None = None, sweep_id: str = "synthetic") -> list[dict]:
+    """Rows like run_cell's: metric = trial effect + method effect + noise (negated when lower is better)."""
+    effect = EFFECT if effect is None else effect
+    rng = np.random.default_rng(seed)
+    knob_grid = [{}] if not knobs else [dict(zip(knobs, vals)) for vals in
+                                        pd.MultiIndex.from_product(list(knobs.values())).tolist()]
+    rows = []
+    for kv in knob_grid:
+        for t in trials:
+            for p in paired:
+                block = rng.normal() + 0.1 * p
+                for m in methods:
+                    value = block + effect.get(m, 0.0) + noise * rng.normal()
+                    kv_text = "-".join(f"{k}{v}" for k, v in kv.items())
+                    rows.append({
+                        "domain": domain, "method": m, "paired": p, "trial": t, "root_seed": 0,
+                        "lambda_unpaired": 1.0 if m == "asp" else 0.0, "train_steps": 100,
+                        **kv,
+                        "cell_id": f"{domain}-{m}-p{p}-t{t}-{kv_text or 'x'}",
+                        "eval_mixed": value if higher else -value,
+                        "eval_self_play_base": 3.0 if higher else 0.0,
+                        "eval_mixed_higher_is_better": higher,
+                        "metric_directions": json.dumps({"mixed": "higher" if higher else "lower"}),
+                        "figure_data": None, "sweep_id": sweep_id,
+                    })
+    return rows
+
+
+def write_sweep(root: Path, rows: list[dict], manifest_ids: list[str] | None = None) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    for row in rows:
+        d = root / "cells" / f"domain={row['domain']}" / f"method={row['method']}"
+        d.mkdir(parents=True, exist_ok=True)
+        pq.write_table(pa.Table.from_pylist([row]), d / f"{row['cell_id']}.parquet")
+    if manifest_ids is not None:
+        (root / "manifest.json").write_text(json.dumps({"name": root.name, "cells": manifest_ids, "specs": []}))
+    return root
+
+
+def cfg(**kw) -> StatsConfig:
+    return StatsConfig(n_boot=500, **kw)
+
+
+# ---- small statistics with known answers ------------------------------------------------------------
+
+def test_quartiles_known_values():
+    assert quartiles(range(1, 10)) == (3.0, 5.0, 7.0)
+    assert quartiles([1, 2, 3, 4]) == (1.75, 2.5, 3.25)
+
+
+def test_friedman_matches_published_example():
+    # Pulse rates of 7 subjects at three times (scipy.stats.friedmanchisquare documentation):
+    # chi2 = 10.571, p = 0.00506.
+    before = [72, 96, 88, 92, 74, 76, 82]
+    after = [120, 120, 132, 120, 101, 96, 112]
+    later = [76, 95, 104, 96, 84, 72, 76]
+    stat, p = friedman(np.array([before, after, later]).T)
+    assert stat == pytest.approx(10.5714, abs=1e-4)
+    assert p == pytest.approx(0.0050634, abs=1e-6)
+    nem = nemenyi(np.array([before, after, later]).T)
+    assert nem.shape == (3, 3) and nem[0, 1] < 0.01 < nem[0, 2]
+
+
+def test_friedman_without_ties_equals_textbook_formula():
+    rng = np.random.default_rng(1)
+    scores = rng.normal(size=(12, 3))
+    ranks = scores.argsort(axis=1).argsort(axis=1) + 1
+    n, k = scores.shape
+    expected = 12 / (n * k * (k + 1)) * (ranks.sum(axis=0) ** 2).sum() - 3 * n * (k + 1)
+    assert friedman(scores)[0] == pytest.approx(expected)
+
+
+def test_all_ties_give_no_evidence():
+    assert friedman(np.ones((5, 3))) == (0.0, 1.0)
+    assert wilcoxon(np.zeros(6)) == (0.0, 1.0)
+    assert np.all(nemenyi(np.ones((5, 3))) == 1.0)
+
+
+def test_holm_known_values():
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+    out = holm([0.2, np.nan, 0.01])
+    assert out[0] == pytest.approx(0.2) and np.isnan(out[1]) and out[2] == pytest.approx(0.02)
+
+
+def test_bootstrap_is_reproducible_and_brackets_the_median():
+    x = np.random.default_rng(3).normal(size=25)
+    a = bootstrap_median_ci(x, 1000, 0.95, seed=7)
+    assert a == bootstrap_median_ci(x, 1000, 0.95, seed=7)
+    assert a != bootstrap_median_ci(x, 1000, 0.95, seed=8)
+    assert a[0] <= np.median(x) <= a[1]
+    assert bootstrap_median_ci([2.0], seed=1) == (2.0, 2.0)
+
+
+# ---- the job on synthetic sweeps ------------------------------------------------------------------
+
+def test_summary_matches_direct_computation():
+    rows = pd.DataFrame(make_rows())
+    res = compute(rows, cfg())
+    s = res.tables["summary"]
+    assert len(s) == 3 * 4 and set(s["n"]) == {8}
+    g = rows[(rows.method == "asp") & (rows.paired == 2)]["eval_mixed"]
+    rec = s[(s.treatment == "asp") & (s.paired == 2)].iloc[0]
+    assert rec["median"] == pytest.approx(g.median())
+    assert (rec["q1"], rec["q3"]) == pytest.approx(tuple(np.percentile(g, [25, 75])))
+    assert rec["mean"] == pytest.approx(g.mean()) and rec["std"] == pytest.approx(g.std(ddof=1))
+    assert rec["ci_low"] <= rec["median"] <= rec["ci_high"]
+
+
+def test_bootstrap_interval_of_a_group_does_not_depend_on_other_groups():
+    rows = pd.DataFrame(make_rows())
+    full = compute(rows, cfg()).tables["summary"]
+    only_asp = compute(rows[rows.method == "asp"], cfg()).tables["summary"]
+    a = full[full.treatment == "asp"].set_index("paired")[["ci_low", "ci_high"]]
+    b = only_asp.set_index("paired")[["ci_low", "ci_high"]]
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_clear_effect_is_detected_with_asp_best():
+    res = compute(pd.DataFrame(make_rows(paired=(2, 3, 4))), cfg())
+    tests = res.tables["tests"].iloc[0]
+    assert tests["test"] == "friedman" and tests["p_value"] < 1e-6 and tests["n_blocks"] == 24
+    pw = res.tables["pairwise"].set_index(["a", "b"])
+    assert pw.loc[("asp", "pc"), "significant"] and pw.loc[("asp", "pc"), "better"] == "asp"
+    assert pw.loc[("asp", "osp"), "significant"] and pw.loc[("asp", "osp"), "better"] == "asp"
+    assert pw.loc[("asp", "pc"), "median_diff"] == pytest.approx(1.0, abs=0.3)
+    assert json.loads(tests["mean_ranks"])["asp"] < json.loads(tests["mean_ranks"])["pc"]
+
+
+def test_identical_methods_are_not_significant():
+    same = {"pc": 0.0, "osp": 0.0, "asp": 0.0}
+    res = compute(pd.DataFrame(make_rows(effect=same, noise=0.0)), cfg())
+    assert res.tables["tests"].iloc[0]["p_value"] == 1.0
+    assert not res.tables["pairwise"]["significant"].any()
+    assert (res.tables["pairwise"]["better"] == "tie").all()
+    noisy = compute(pd.DataFrame(make_rows(effect=same, noise=0.3, seed=5)), cfg())
+    assert noisy.tables["tests"].iloc[0]["p_value"] > 0.05
+    assert not noisy.tables["pairwise"]["significant"].any()
+
+
+def test_lower_is_better_comes_from_the_rows():
+    # Metric negated and flagged lower-is-better: ASP has the lowest values and must still win.
+    rows = pd.DataFrame(make_rows(domain="vae", paired=(8, 16, 32), higher=False))
+    res = compute(rows, cfg())
+    assert res.layouts["vae"].higher_is_better is False
+    pw = res.tables["pairwise"].set_index(["a", "b"])
+    assert pw.loc[("asp", "pc"), "better"] == "asp" and pw.loc[("asp", "pc"), "median_diff"] < 0
+    # Without the flag column, the direction is read from metric_directions.
+    res2 = compute(rows.drop(columns="eval_mixed_higher_is_better"), cfg())
+    assert res2.layouts["vae"].higher_is_better is False
+    with pytest.raises(SpecError, match="higher or lower"):
+        compute(rows.drop(columns=["eval_mixed_higher_is_better", "metric_directions"]), cfg())
+
+
+def test_paper_paired_range_is_used_per_domain():
+    rows = pd.DataFrame(make_rows(domain="particles", paired=range(0, 7)))
+    res = compute(rows, cfg())
+    t = res.tables["tests"].iloc[0]
+    assert t["paired_range"] == "2-4" and t["n_blocks"] == 3 * 8
+    res = compute(rows, cfg(paired_ranges={"particles": (0, 6)}))
+    assert res.tables["tests"].iloc[0]["n_blocks"] == 7 * 8
+
+
+def test_two_methods_use_the_wilcoxon_test():
+    res = compute(pd.DataFrame(make_rows(methods=("osp", "asp"))), cfg())
+    t = res.tables["tests"].iloc[0]
+    assert t["test"] == "wilcoxon" and t["p_value"] < 0.01
+    assert len(res.tables["pairwise"]) == 1 and res.tables["pairwise"].iloc[0]["a"] == "asp"
+
+
+def test_shared_knob_is_a_condition_and_method_only_knob_a_treatment():
+    rows = make_rows(knobs={"signaling_skew": [0.0, 2.0]})
+    extra = [dict(r, lambda_unpaired=0.5, cell_id=r["cell_id"] + "-l05") for r in rows if r["method"] == "asp"]
+    res = compute(pd.DataFrame(rows + extra), cfg())
+    layout = res.layouts["signaling"]
+    assert layout.shared_knobs == ["signaling_skew"]
+    assert layout.method_knobs["asp"] == ["lambda_unpaired"] and layout.method_knobs["pc"] == []
+    assert set(res.tables["summary"]["condition"]) == {"signaling_skew=0", "signaling_skew=2"}
+    assert set(res.tables["summary"]["treatment"]) == {"pc", "osp", "asp[lambda_unpaired=0.5]", "asp[lambda_unpaired=1]"}
+    assert len(res.tables["tests"]) == 2 and (res.tables["tests"]["test"] == "friedman").all()
+
+
+def test_efficiency_threshold_and_two_n_claim():
+    # Deterministic medians: value = method level + 0.1*paired (noise 0 and the block term removed).
+    rows = pd.DataFrame(make_rows(paired=(0, 1, 2, 4), noise=0.0))
+    block = rows.groupby(["trial", "paired"])["eval_mixed"].transform("min")  # = pc value of the block
+    rows["eval_mixed"] = rows["eval_mixed"] - block + 0.1 * rows["paired"]
+    # pc = 0.1p, osp = 0.5 + 0.1p, asp = 1 + 0.1p
+    res = compute(rows, cfg(thresholds={"signaling": 0.7}))
+    eff = res.tables["efficiency"].set_index("treatment")
+    assert eff.loc["asp", "min_paired_reaching"] == 0
+    assert eff.loc["osp", "min_paired_reaching"] == 2
+    assert pd.isna(eff.loc["pc", "min_paired_reaching"])
+    claim = res.tables["claim_2n"].set_index(["other", "n"])
+    assert claim.loc[("osp", 1), "holds"] and claim.loc[("osp", 2), "holds"]  # 1.1 >= 0.7, 1.2 >= 0.9
+    assert claim.loc[("pc", 2), "median_diff"] == pytest.approx(1.2 - 0.4)
+    assert claim.loc[("pc", 2), "verdict"].startswith("beats")
+    # ASP made worse than OSP with twice the data: the claim fails.
+    rows.loc[rows.method == "asp", "eval_mixed"] -= 0.9
+    claim = compute(rows, cfg()).tables["claim_2n"].set_index(["other", "n"])
+    assert not claim.loc[("osp", 2), "holds"] and claim.loc[("osp", 2), "verdict"] == "falls short"
+
+
+def test_default_threshold_is_ninety_percent_of_base():
+    res = compute(pd.DataFrame(make_rows()), cfg())
+    eff = res.tables["efficiency"]
+    assert eff["threshold"].iloc[0] == pytest.approx(2.7) and "90%" in eff["threshold_rule"].iloc[0]
+
+
+def test_duplicate_rows_are_dropped_with_a_note():
+    rows = make_rows(trials=range(3))
+    res = compute(pd.DataFrame(rows + rows[:5]), cfg())
+    assert len(res.rows) == len(rows) and any("duplicate" in n for n in res.notes)
+
+
+# ---- partial, merged and mismatched inputs ----------------------------------------------------------
+
+def test_partial_sweep_reports_missing_cells_and_incomplete_blocks(tmp_path):
+    rows = make_rows(trials=range(4))
+    planned = [r["cell_id"] for r in rows] + ["signaling-asp-p8-t0-abcdef"]
+    done = [r for r in rows if not (r["method"] == "pc" and r["trial"] == 3)]
+    sweep = write_sweep(tmp_path / "partial", done, manifest_ids=planned)
+    failed = sweep / "failed"
+    failed.mkdir()
+    (failed / "signaling-asp-p8-t0-abcdef.json").write_text(json.dumps(
+        {"cell_id": "signaling-asp-p8-t0-abcdef", "error": "Traceback ...\nRuntimeError: boom"}))
+    res = run_stats([sweep], cfg())
+    missing = res.tables["missing"]
+    manifest_missing = missing[missing.kind != "incomplete block"]
+    assert len(manifest_missing) == 4 + 1
+    assert set(manifest_missing[manifest_missing.kind == "not finished (manifest)"]["method"]) == {"pc"}
+    boom = manifest_missing[manifest_missing.kind == "failed"].iloc[0]
+    assert boom["paired"] == 8 and boom["error"] == "RuntimeError: boom"
+    incomplete = missing[missing.kind == "incomplete block"]
+    assert len(incomplete) == 4 and set(incomplete["trial"]) == {3}
+    assert any("44 of 49 planned cells finished" in n for n in res.notes)
+    # The stats still run on the complete blocks.
+    assert res.tables["tests"].iloc[0]["n_blocks_incomplete"] == 4
+
+
+def test_sweep_without_manifest_still_runs(tmp_path):
+    sweep = write_sweep(tmp_path / "nomanifest", make_rows(trials=range(3)))
+    res = run_stats([sweep], cfg())
+    assert any("no readable manifest" in n for n in res.notes)
+    assert res.tables["missing"].empty
+
+
+def test_merged_sweeps_keep_each_domain_and_direction(tmp_path):
+    a = write_sweep(tmp_path / "sig", make_rows(trials=range(3), sweep_id="sig"))
+    b = write_sweep(tmp_path / "vae", make_rows(domain="vae", paired=(8, 16, 32), trials=range(3), higher=False,
+                                                knobs={"vae_latent_dim": [2, 32]}, sweep_id="vae"))
+    res = run_stats([a, b], cfg())
+    assert set(res.layouts) == {"signaling", "vae"}
+    assert res.layouts["vae"].higher_is_better is False and res.layouts["vae"].shared_knobs == ["vae_latent_dim"]
+    assert set(res.tables["tests"]["paired_range"]) == {"0-4", "8-32"}
+    out = write_tables(res, tmp_path / "merged")
+    back = pd.read_parquet(out["summary"])
+    assert len(back) == len(res.tables["summary"]) and (tmp_path / "merged/stats/summary.md").read_text().startswith("|")
+
+
+def test_mismatched_column_types_are_refused(tmp_path):
+    rows = make_rows(trials=range(2))
+    sweep = write_sweep(tmp_path / "bad", rows)
+    bad = dict(rows[0], eval_mixed="0.5", cell_id="odd")
+    pq.write_table(pa.Table.from_pylist([bad]), sweep / "cells" / "odd.parquet")
+    with pytest.raises(SchemaMismatch, match="column 'eval_mixed' is float in .* but string in"):
+        run_stats([sweep], cfg())
+
+
+def test_files_without_key_columns_are_refused(tmp_path):
+    sweep = write_sweep(tmp_path / "nokeys", make_rows(trials=range(2)))
+    pq.write_table(pa.table({"x": [1]}), sweep / "cells" / "stray.parquet")
+    with pytest.raises(SchemaMismatch, match="lacks the key column"):
+        open_inputs([sweep])
+
+
+def test_int_and_float_columns_widen_and_temp_files_are_ignored(tmp_path):
+    rows = make_rows(trials=range(2))
+    sweep = write_sweep(tmp_path / "widen", rows)
+    pq.write_table(pa.Table.from_pylist([dict(rows[0], train_steps=1.5, cell_id="w")]), sweep / "cells" / "w.parquet")
+    (sweep / "cells" / ".half-written.parquet").write_bytes(b"garbage")
+    (sweep / "cells" / "_tmp").mkdir()
+    (sweep / "cells" / "_tmp" / "x.parquet").write_bytes(b"garbage")
+    df = load_rows([sweep])
+    assert len(df) == len(rows) + 1 and df["train_steps"].dtype == float
+
+
+def test_missing_metric_column_is_a_clear_error():
+    with pytest.raises(SpecError, match="metric column 'eval_nope'"):
+        compute(pd.DataFrame(make_rows(trials=range(2))), cfg(metric="eval_nope"))
