@@ -32,6 +32,7 @@ def test_base_is_a_perfect_bijection_and_varies_with_trial():
     assert len({tuple(b.greedy_tokens().tolist()) for b in bases}) > 1
 
 
+@pytest.mark.slow
 def test_adversary_resolves_a_skewed_convention_without_paired_data():
     """The analysis' claim in miniature: with distinct class sizes, matching the token
     marginal identifies the convention; with a uniform distribution it cannot."""
@@ -39,8 +40,8 @@ def test_adversary_resolves_a_skewed_convention_without_paired_data():
 
     def median_mixed(method, skew):
         scores = sorted(run_cell(CellSpec(domain="signaling", method=method, paired=0, trial=t,
-                                          signaling_skew=skew))["eval_mixed"] for t in range(5))
-        return scores[2]
+                                          signaling_skew=skew, train_steps=200))["eval_mixed"] for t in range(8))
+        return (scores[3] + scores[4]) / 2
 
     assert median_mixed("asp", 1.0) > median_mixed("osp", 1.0)
     assert median_mixed("asp", 1.0) > median_mixed("asp", 0.0)

@@ -74,7 +74,7 @@ class SignalingDomain(Domain):
     defaults = dict(
         signaling_states=32, signaling_tokens=4, signaling_skew=1.0,
         lambda_paired=1.0, lambda_unpaired=1.0, unpaired_size=1024,
-        train_steps=300, batch_size=64, lr=0.05,
+        train_steps=300, batch_size=256, lr=0.05,
         disc_hidden=32, disc_layers=1, disc_lr=0.01,
         base_train_steps=0, eval_episodes=1,
     )
