@@ -42,13 +42,15 @@ def model_adversarial_loss(disc: Discriminator, fake: torch.Tensor, kind: str) -
 class Adversaries(nn.Module):
     """One discriminator and optimiser per channel; updated once per training step."""
 
-    def __init__(self, channel_dims: dict[str, int], hidden: int, layers: int, lr: float, seed: int):
+    def __init__(self, channel_dims: dict[str, int], hidden: int, layers: int, lr: float, seed: int,
+                 optimizer_options: dict | None = None):
         super().__init__()
         self.discs = nn.ModuleDict({
             ch: seeded(seed + i, lambda d=dim: Discriminator(d, hidden, layers))
             for i, (ch, dim) in enumerate(sorted(channel_dims.items()))
         })
-        self.optims = {ch: torch.optim.Adam(d.parameters(), lr=lr) for ch, d in self.discs.items()}
+        self.optims = {ch: torch.optim.Adam(d.parameters(), lr=lr, **(optimizer_options or {}))
+                       for ch, d in self.discs.items()}
 
     def step(self, real: dict[str, torch.Tensor], fake: dict[str, torch.Tensor]) -> float:
         """One BCE update of every discriminator; returns the mean discriminator loss."""

@@ -74,12 +74,13 @@ class Trainer:
                  unpaired: Tensors, weights: LossWeights):
         self.spec, self.domain, self.agents = spec, domain, agents
         self.paired, self.unpaired, self.weights = paired, unpaired, weights
-        self.opt = torch.optim.Adam(agents.parameters(), lr=spec.lr)
+        self.opt = torch.optim.Adam(agents.parameters(), lr=spec.lr, **domain.optimizer_options)
         self.gen = torch.Generator().manual_seed(spec.seed_for("train"))
         self.adversaries = None
         if weights.needs_adversary:
             self.adversaries = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers,
-                                           spec.disc_lr, seed=spec.seed_for("init") + 1000)
+                                           spec.disc_lr, seed=spec.seed_for("init") + 1000,
+                                           optimizer_options=domain.optimizer_options)
         self.sp_state = domain.init_self_play(spec, agents, self.gen) if weights.needs_self_play else {}
         self.step = 0
         # Diagnostics: mean of each loss term over the last 10 % of training.
