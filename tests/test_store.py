@@ -1,0 +1,165 @@
+"""The Parquet result store: pinned schema, atomic one-file-per-cell writes, three readers, base cache."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from pathlib import Path
+
+import duckdb
+import pandas as pd
+import pyarrow as pa
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+import pytest
+
+from asp_dist import store
+from asp_dist.base_cache import base_path, get_base
+from asp_dist.cell import run_cell
+from asp_dist.domains import DOMAINS, available_domains, get_domain
+from asp_dist.spec import FIELD_NAMES, CellSpec
+
+
+@pytest.fixture(scope="module")
+def rows():
+    """Real rows of three signaling cells (two methods, two paired counts)."""
+    out = []
+    for method, paired in (("pc", 2), ("asp", 2), ("asp", 4)):
+        spec = CellSpec(domain="signaling", method=method, paired=paired, train_steps=30, batch_size=16,
+                        unpaired_size=64)
+        out.append(dict(run_cell(spec), ray_node_id="node-a", ray_version="x"))
+    return out
+
+
+def test_schema_pins_spec_metric_and_cell_columns(rows):
+    sch = store.schema()
+    assert set(FIELD_NAMES) <= set(sch.names)
+    for domain in available_domains():
+        for metric in get_domain(domain).metrics:
+            assert sch.field(f"eval_{metric}").type == pa.float64()
+    assert sch.field("paired").type == pa.int64()
+    assert sch.field("lr").type == pa.float64()
+    assert sch.field("record_figure_data").type == pa.bool_()
+    assert pa.types.is_dictionary(sch.field("domain").type)
+    for col in ("sweep_id", "ray_node_id", "code_revision", "node", "time_train_wall_s", "base_key"):
+        assert col in sch.names
+    # Every column run_cell writes is pinned: a new column in cell.py fails here first.
+    assert set(rows[0]) <= set(sch.names)
+    assert len(DOMAINS) >= 1
+
+
+def test_unknown_column_is_an_error_and_missing_is_null(rows):
+    with pytest.raises(store.SchemaError, match="not_a_column"):
+        store.row_table(dict(rows[0], not_a_column=1))
+    partial = {k: v for k, v in rows[0].items() if k != "loss_disc"}
+    table = store.row_table(partial)
+    assert table.column("loss_disc").to_pylist() == [None]
+    assert table.schema == store.schema()
+
+
+def test_write_is_atomic_fixed_name_and_never_overwrites(tmp_path, rows):
+    row = rows[0]
+    assert store.write_row(tmp_path, row, sweep_id="s1")
+    path = store.cell_path(tmp_path, row["domain"], row["method"], row["cell_id"])
+    assert path.exists() and path.parent.name == f"method={row['method']}"
+    before = path.read_bytes()
+    assert not store.write_row(tmp_path, dict(row, eval_mixed=-1.0), sweep_id="s2")
+    assert path.read_bytes() == before
+    assert not [p for p in path.parent.iterdir() if p.name.startswith(".")], "temp file left behind"
+    assert store.done_cell_ids(tmp_path) == {row["cell_id"]}
+    # A hidden temp file of a crashed writer is not a finished cell.
+    (path.parent / ".other.123.tmp").write_bytes(b"partial")
+    assert store.done_cell_ids(tmp_path) == {row["cell_id"]}
+
+
+def test_dataset_reads_with_pandas_pyarrow_and_duckdb(tmp_path, rows):
+    for row in rows:
+        store.write_row(tmp_path, row, sweep_id="s1")
+    (store.cells_dir(tmp_path) / "domain=signaling" / "method=asp" / ".crashed.tmp").write_bytes(b"junk")
+    cells = store.cells_dir(tmp_path)
+    by_pandas = pd.read_parquet(cells, filters=None)
+    by_arrow = ds.dataset(cells, exclude_invalid_files=True).to_table().to_pandas()
+    by_duckdb = duckdb.sql(f"select * from read_parquet('{cells}/**/*.parquet')").df()
+    for df in (by_pandas, by_arrow, by_duckdb):
+        assert len(df) == 3
+        assert sorted(df["method"].astype(str)) == ["asp", "asp", "pc"]
+        assert set(df["domain"].astype(str)) == {"signaling"}
+        assert sorted(df["paired"]) == [2, 2, 4]
+    grouped = duckdb.sql(f"select method, count(*) n from read_parquet('{cells}/**/*.parquet') "
+                         f"group by method order by method").fetchall()
+    assert grouped == [("asp", 2), ("pc", 1)]
+    df = store.read_rows(tmp_path)
+    assert list(df["cell_id"]) == sorted(r["cell_id"] for r in rows)
+    assert df["domain"].tolist() == ["signaling"] * 3 and df["sweep_id"].tolist() == ["s1"] * 3
+    original = {r["cell_id"]: r for r in rows}
+    for rec in df.to_dict("records"):
+        assert rec["eval_mixed"] == original[rec["cell_id"]]["eval_mixed"]
+
+
+def test_read_rows_of_empty_sweep_has_the_schema(tmp_path):
+    df = store.read_rows(tmp_path)
+    assert len(df) == 0 and "eval_mixed" in df.columns
+
+
+def test_failures_and_manifest_roundtrip(tmp_path):
+    store.record_failure(tmp_path, "c1", "signaling", "asp", "boom")
+    store.record_failure(tmp_path, "c1", "signaling", "asp", "boom again")
+    info = store.failed_cells(tmp_path)["c1"]
+    assert info["times_failed"] == 2 and info["error"] == "boom again"
+    store.clear_failure(tmp_path, "c1")
+    assert store.failed_cells(tmp_path) == {}
+    store.write_manifest(tmp_path, {"grid_hash": "abc", "cells": ["c1"]})
+    assert store.read_manifest(tmp_path)["grid_hash"] == "abc"
+
+
+# ---- base cache ---------------------------------------------------------------------------------
+def _ask_for_base(args):
+    cache_dir, calls_file = args
+    import asp_dist.bases as bases
+    import asp_dist.base_cache as cache
+
+    original = bases.train_accepted_base
+
+    def counting(spec, progress=None):
+        with open(calls_file, "a") as fh:
+            fh.write("trained\n")
+        import time
+        time.sleep(0.5)  # widen the race window: the second process must wait, not train again
+        return original(spec, progress)
+
+    cache.train_accepted_base = counting
+    spec = CellSpec(domain="signaling", method="asp", trial=3)
+    base, cached = cache.get_base(spec, Path(cache_dir))
+    return base.key, cached, base.score
+
+
+def test_base_cache_trains_once_under_concurrent_requests(tmp_path):
+    calls = tmp_path / "calls.txt"
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(2) as pool:
+        results = pool.map(_ask_for_base, [(str(tmp_path / "bases"), str(calls))] * 2)
+    assert calls.read_text().count("trained") == 1
+    assert sorted(r[1] for r in results) == [False, True]
+    assert results[0][0] == results[1][0] == CellSpec(domain="signaling", trial=3).base_key
+    spec = CellSpec(domain="signaling", method="pc", trial=3)  # another method shares the base
+    base, cached = get_base(spec, tmp_path / "bases")
+    assert cached and base.key == spec.resolved().base_key
+    assert base_path(tmp_path / "bases", base.key).exists()
+    assert not [p for p in (tmp_path / "bases").iterdir() if p.name.endswith(".tmp")]
+    assert os.path.getsize(base_path(tmp_path / "bases", base.key)) > 0
+
+
+def test_base_from_cache_gives_the_same_row_as_training_it(tmp_path):
+    from asp_dist.cell import comparable
+
+    spec = CellSpec(domain="signaling", method="asp", paired=2, train_steps=30, batch_size=16, unpaired_size=64)
+    get_base(spec, tmp_path)
+    base, cached = get_base(spec, tmp_path)
+    assert cached
+    assert comparable(run_cell(spec, base=base)) == comparable(run_cell(spec))
+
+
+def test_pinned_schema_file_roundtrip(tmp_path, rows):
+    store.write_row(tmp_path, rows[1], sweep_id="s")
+    path = store.cell_path(tmp_path, rows[1]["domain"], rows[1]["method"], rows[1]["cell_id"])
+    assert pq.read_schema(path).remove_metadata() == store.schema()
