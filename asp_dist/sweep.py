@@ -60,8 +60,8 @@ DEFAULT_CHECKPOINT_EVERY_S = 30.0
 LOCK_FILE = ".lock"
 TUNE_DIR = "tune"
 TUNE_CURRENT = "current.json"  # which Tune experiment covers which cells
-# Test hook: "<cell_id substring>:<train step>:<marker file>" SIGKILLs the worker running that
-# cell once (the marker records that it happened), to exercise worker-failure retries.
+# Test hook, comma-separated "<cell_id substring>:<train step>:<marker file or 'always'>": SIGKILLs
+# the worker running a matching cell once (the marker records that it happened) or every time.
 FAULT_ENV = "ASP_DIST_FAULT_KILL_WORKER"
 
 log = logging.getLogger(__name__)
@@ -121,16 +121,18 @@ def train_cell(config: dict[str, Any]) -> None:
 
 
 def _fault_injector(cell_id: str):
-    spec_text = os.environ.get(FAULT_ENV)
-    if not spec_text:
-        return None
-    match, step, marker = spec_text.split(":", 2)
-    if match not in cell_id:
+    """Test hook (see FAULT_ENV): a progress callback that SIGKILLs this worker process."""
+    for entry in filter(None, os.environ.get(FAULT_ENV, "").split(",")):
+        match, step, marker = entry.split(":", 2)
+        if match in cell_id:
+            break
+    else:
         return None
 
     def progress(phase: str, done: int, total: int, info: dict) -> None:
-        if phase == "train" and done >= int(step) and not os.path.exists(marker):
-            Path(marker).write_text(f"killed {cell_id} at step {done}\n")
+        if phase == "train" and done >= int(step) and (marker == "always" or not os.path.exists(marker)):
+            if marker != "always":
+                Path(marker).write_text(f"killed {cell_id} at step {done}\n")
             os.kill(os.getpid(), signal.SIGKILL)
 
     return progress
