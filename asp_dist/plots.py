@@ -119,7 +119,8 @@ def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Fi
         ax.set_xticks(sorted(sc["paired"].unique()))
         ax.set_xticklabels([str(p) for p in sorted(sc["paired"].unique())])
         ax.set_xlabel(KNOB_LABELS["paired"])
-        ax.set_title(cond if cond != "all" else domain, fontsize=10)
+        if cond != "all":
+            ax.set_title(cond, fontsize=10)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
     axes[0].legend(fontsize=8)
@@ -247,7 +248,7 @@ def _figure_payloads(rows: pd.DataFrame) -> list[tuple[dict, dict]]:
             data = json.loads(rec["figure_data"]) if isinstance(rec["figure_data"], str) else rec["figure_data"]
         except ValueError:
             continue
-        if isinstance(data, dict) and data.get("kind") in ("latent2d", "comm"):
+        if isinstance(data, dict) and data.get("kind") in ("latent2d", "comm", "vae_recon"):
             out.append((rec, data))
     return out
 
@@ -273,16 +274,12 @@ def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], 
     payloads = _figure_payloads(result.rows)
     by_key: dict[tuple, list[tuple[dict, dict]]] = {}
     for rec, data in payloads:
-        by_key.setdefault((rec["domain"], data["kind"], rec["condition"]), []).append((rec, data))
+        if data["kind"] in ("latent2d", "comm"):
+            by_key.setdefault((rec["domain"], data["kind"], rec["condition"]), []).append((rec, data))
     for (domain, kind, cond), items in sorted(by_key.items())[:MAX_FIGURES_PER_KIND]:
         color_key = "labels" if kind == "latent2d" else "ids"
         try:
-            trial = min(int(r["trial"]) for r, _ in items)
-            items = [(r, d) for r, d in items if int(r["trial"]) == trial]
-            prefer = [(r, d) for r, d in items if is_asp(r["treatment"])] or items
-            prefer.sort(key=lambda rd: int(rd[0]["paired"]))
-            if len(prefer) > 4:
-                prefer = [prefer[i] for i in np.linspace(0, len(prefer) - 1, 4).round().astype(int)]
+            trial, prefer = _pick_rows(items, 4)
             first = prefer[0][1]
             panels = [("Base model", np.asarray(first["base"], float), np.asarray(first[color_key]))]
             for rec, data in prefer:
@@ -306,6 +303,59 @@ def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], 
         stem = _safe(f"{domain}_{kind}_{cond}")
         figures.append(Figure(stem, f"{domain}: {what}", f"Trial {trial}; each panel projected on its own.",
                               _save(fig, out_dir, stem)))
+    recon, more = plot_reconstructions(payloads, out_dir)
+    return figures + recon, notes + more
+
+
+def _pick_rows(items: list[tuple[dict, dict]], most: int) -> tuple[int, list[tuple[dict, dict]]]:
+    """Rows of the lowest trial, ASP preferred, at up to `most` paired counts spread over the range."""
+    trial = min(int(r["trial"]) for r, _ in items)
+    items = [(r, d) for r, d in items if int(r["trial"]) == trial]
+    prefer = sorted([(r, d) for r, d in items if is_asp(r["treatment"])] or items, key=lambda rd: int(rd[0]["paired"]))
+    if len(prefer) > most:
+        prefer = [prefer[i] for i in np.linspace(0, len(prefer) - 1, most).round().astype(int)]
+    return trial, prefer
+
+
+def plot_reconstructions(payloads: list[tuple[dict, dict]], out_dir: Path) -> tuple[list[Figure], list[str]]:
+    """VAE reconstructions of one test image per digit: original, base, and the two mixed pairings."""
+    figures, notes = [], []
+    by_key: dict[tuple, list[tuple[dict, dict]]] = {}
+    for rec, data in payloads:
+        if isinstance(data.get("recon"), dict):
+            by_key.setdefault((rec["domain"], rec["condition"]), []).append((rec, data["recon"]))
+    for (domain, cond), items in sorted(by_key.items())[:MAX_FIGURES_PER_KIND]:
+        try:
+            trial, chosen = _pick_rows(items, 3)
+            first = chosen[0][1]
+            side = int(first.get("side", 28))
+            lines = [("original", first["original"]), ("base → base", first["base"])]
+            for rec, r in chosen:
+                tag = f"{rec['treatment'].upper()}+{rec['paired']}"
+                lines.append((f"{tag}: base enc → new dec", r["base_encoder_new_decoder"]))
+                lines.append((f"{tag}: new enc → base dec", r["new_encoder_base_decoder"]))
+            cols = len(first["original"])
+            fig, axes = plt.subplots(len(lines), cols, figsize=(0.9 * cols + 1.6, 0.95 * len(lines)), squeeze=False,
+                                     layout="constrained")
+            for i, (name, images) in enumerate(lines):
+                for j in range(cols):
+                    ax = axes[i, j]
+                    ax.imshow(np.asarray(images[j], dtype=float).reshape(side, side), cmap="gray", vmin=0, vmax=255)
+                    ax.set_xticks([]), ax.set_yticks([])
+                    if j == 0:
+                        ax.set_ylabel(name, rotation=0, ha="right", va="center", fontsize=7)
+                    if i == 0 and "labels" in first:
+                        ax.set_title(str(first["labels"][j]), fontsize=8)
+        except (KeyError, ValueError, TypeError, IndexError) as err:
+            plt.close("all")
+            notes.append(f"reconstructions of {domain} ({cond}) not drawn: {err}")
+            continue
+        fig.suptitle(f"{domain}, trial {trial}" + (f", {cond}" if cond != "all" else "")
+                     + ": reconstructions of one test image per digit", fontsize=10)
+        stem = _safe(f"{domain}_reconstructions_{cond}")
+        figures.append(Figure(stem, f"{domain}: reconstructions" + (f" ({cond})" if cond != "all" else ""),
+                              "Rows: original test image, the base VAE, and for ASP at a few paired counts the two "
+                              "mixed pairings the metric scores.", _save(fig, out_dir, stem)))
     return figures, notes
 
 

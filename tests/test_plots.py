@@ -1,0 +1,104 @@
+"""Figures and report: files produced, non-empty, for every kind of figure the rows support."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+from asp_dist.cli_stats import main, run_job
+from asp_dist.plots import plot_all
+from asp_dist.stats import StatsConfig, compute
+from test_stats import make_rows, write_sweep
+
+
+def _nonempty(paths):
+    for p in paths:
+        assert p.exists() and p.stat().st_size > 2000, p
+
+
+def test_paired_knob_and_effect_figures(tmp_path):
+    rows = pd.DataFrame(make_rows(trials=range(4), knobs={"signaling_skew": [0.0, 1.0, 2.0]}))
+    res = compute(rows, StatsConfig(n_boot=200))
+    figures, notes = plot_all(res, tmp_path / "figures")
+    names = {f.name for f in figures}
+    assert names == {"signaling_metric_vs_paired", "signaling_metric_vs_signaling_skew",
+                     "signaling_asp_effect_vs_signaling_skew"}, names
+    for f in figures:
+        assert {p.suffix for p in f.paths} == {".png", ".svg"}
+        _nonempty(f.paths)
+    svg = (tmp_path / "figures" / "signaling_metric_vs_paired.svg").read_text()
+    assert "higher is better" in svg and "paired examples" in svg
+    assert notes == []
+
+
+def test_vae_latent_size_figure_says_lower_is_better(tmp_path):
+    rows = pd.DataFrame(make_rows(domain="vae", paired=(32,), trials=range(3), higher=False,
+                                  knobs={"vae_latent_dim": [2, 8, 32, 128]}))
+    figures, _ = plot_all(compute(rows, StatsConfig(n_boot=200)), tmp_path)
+    by_name = {f.name: f for f in figures}
+    assert "vae_metric_vs_vae_latent_dim" in by_name
+    svg = by_name["vae_metric_vs_vae_latent_dim"].paths[1].read_text()
+    assert "lower is better" in svg and "latent size" in svg
+
+
+def test_latent_and_communication_scatters_from_figure_data(tmp_path):
+    rng = np.random.default_rng(0)
+    rows = make_rows(domain="vae", paired=(0, 8), trials=range(2), higher=False)
+    images = lambda: rng.integers(0, 256, (10, 784)).tolist()  # noqa: E731
+    for r in rows:
+        labels = rng.integers(0, 10, 200).tolist()
+        recon = {"labels": list(range(10)), "side": 28, "original": images(), "base": images(), "new": images(),
+                 "base_encoder_new_decoder": images(), "new_encoder_base_decoder": images()}
+        r["figure_data"] = json.dumps({"kind": "latent2d", "base": rng.normal(size=(200, 2)).tolist(),
+                                       "new": rng.normal(size=(200, 2)).tolist(), "labels": labels, "recon": recon})
+    lev = make_rows(domain="levers", paired=(0, 4), trials=range(2), higher=False)
+    for r in lev:
+        r["figure_data"] = json.dumps({"kind": "comm", "base": rng.normal(size=(90, 16)).tolist(),
+                                       "new": rng.normal(size=(90, 16)).tolist(), "ids": (list(range(10)) * 9)})
+    res = compute(pd.DataFrame(rows + lev), StatsConfig(n_boot=200))
+    figures, notes = plot_all(res, tmp_path)
+    names = {f.name for f in figures}
+    assert {"vae_latent2d_all", "vae_reconstructions_all", "levers_comm_all"} <= names
+    assert notes == []
+    _nonempty([p for f in figures for p in f.paths])
+    scatter = next(f for f in figures if f.name == "vae_latent2d_all")
+    assert "digit" in scatter.paths[1].read_text()
+
+
+def test_malformed_figure_data_is_a_note_not_a_crash(tmp_path):
+    rows = make_rows(domain="levers", paired=(0,), trials=range(1), higher=False)
+    for r in rows:
+        r["figure_data"] = json.dumps({"kind": "comm", "base": [[1.0, 2.0]], "new": [[1.0]], "ids": [1, 2]})
+    figures, notes = plot_all(compute(pd.DataFrame(rows), StatsConfig(n_boot=200)), tmp_path)
+    assert not any(f.name.startswith("levers_comm") for f in figures)
+    assert len(notes) == 1 and "not drawn" in notes[0]
+
+
+def test_whole_job_writes_tables_figures_and_report(tmp_path):
+    rows = make_rows(trials=range(4))
+    sweep = write_sweep(tmp_path / "job", rows, manifest_ids=[r["cell_id"] for r in rows] + ["signaling-pc-p8-t0-x"])
+    report = run_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
+    text = report.read_text()
+    assert "## At a glance: did ASP beat OSP and PC?" in text
+    assert "ASP beat PC and OSP" in text
+    assert "signaling-pc-p8-t0-x" in text  # the missing cell is named
+    assert "![signaling: eval_mixed against paired count](figures/signaling_metric_vs_paired.png)" in text
+    for name in ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "missing"):
+        assert (sweep / "stats" / f"{name}.parquet").exists() and (sweep / "stats" / f"{name}.md").exists()
+    # Rerunning over the same sweep ignores the stats/ folder it wrote and gives the same tables.
+    before = pd.read_parquet(sweep / "stats" / "summary.parquet")
+    assert main(["stats", str(sweep), "--no-figures", "--quiet", "--bootstrap", "200"]) == 0
+    pd.testing.assert_frame_equal(before, pd.read_parquet(sweep / "stats" / "summary.parquet"))
+
+
+def test_several_inputs_need_an_output_directory(tmp_path):
+    a = write_sweep(tmp_path / "a", make_rows(trials=range(2)))
+    b = write_sweep(tmp_path / "b", make_rows(domain="vae", paired=(8, 16), trials=range(2), higher=False))
+    assert main(["stats", str(a), str(b), "--quiet", "--no-figures"]) == 2
+    assert main(["stats", str(a), str(b), "--quiet", "--no-figures", "--out", str(tmp_path / "m"),
+                 "--bootstrap", "200", "--paired-range", "vae=8-16"]) == 0
+    text = (tmp_path / "m" / "report.md").read_text()
+    assert "**vae**" in text and "**signaling**" in text
+    assert main(["stats", str(a), "--paired-range", "vae=x"]) == 2
