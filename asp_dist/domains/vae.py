@@ -81,7 +81,7 @@ class VAEDomain(Domain):
         vae_latent_dim=32, vae_hidden=512, vae_kl_weight=1.0, vae_base_lr=1e-3, vae_base_batch=128,
         vae_train_images=0,
         base_train_steps=5000,
-        train_steps=1500, batch_size=128, lr=1e-3,
+        train_steps=1000, batch_size=64, lr=1e-3,
         lambda_paired=1.0, lambda_unpaired=1.0, unpaired_size=2048,
         disc_hidden=64, disc_layers=2, disc_lr=1e-3,
         eval_episodes=10_000,

@@ -1,0 +1,122 @@
+"""Benchmark of the MNIST VAE domain on one thread: time per update per method, per cell, peak
+memory, and the floating-point work of an update against the machine's measured matmul rate.
+
+    python bench/bench_vae.py [--updates 200] [--cells] [--latent 32] [--paired 32]
+
+--cells also runs one whole cell per method at the domain's defaults (train_steps updates plus
+evaluation on the 10k test images) on a base trained with --base-steps updates (the base's
+cost is reported separately: per update and extrapolated to the paper's 5,000).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+
+from asp_dist.bases import BaseModel  # noqa: E402
+from asp_dist.cell import Trainer, run_cell  # noqa: E402
+from asp_dist.data.mnist import PIXELS, load_mnist  # noqa: E402
+from asp_dist.domains import get_domain  # noqa: E402
+from asp_dist.methods import method_weights  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
+
+
+def matmul_gflops(m: int = 128, k: int = 784, n: int = 512, reps: int = 300) -> float:
+    a, b = torch.randn(m, k), torch.randn(k, n)
+    for _ in range(20):
+        a @ b
+    t = time.perf_counter()
+    for _ in range(reps):
+        a @ b
+    return 2 * m * k * n * reps / (time.perf_counter() - t) / 1e9
+
+
+def vae_macs(d: int, hidden: int) -> int:
+    """Multiply-accumulates of one image through encoder and decoder (forward)."""
+    return PIXELS * hidden + hidden * 2 * d + d * hidden + hidden * PIXELS
+
+
+def update_flops(spec: CellSpec) -> float:
+    """Floating-point work of one training update (forward + backward ≈ 3 × forward)."""
+    w = method_weights(spec)
+    per_image = 2 * 3 * vae_macs(spec.vae_latent_dim, spec.vae_hidden)
+    flops = 0.0
+    if w.needs_self_play:
+        flops += spec.batch_size * per_image
+    if w.paired:
+        flops += spec.paired * per_image
+    if w.needs_adversary:
+        disc = spec.vae_latent_dim * spec.disc_hidden + (spec.disc_layers - 1) * spec.disc_hidden ** 2 + spec.disc_hidden
+        flops += 2 * 3 * disc * (spec.batch_size + spec.unpaired_batch) * 2  # disc step + model term
+    return flops
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--updates", type=int, default=200)
+    ap.add_argument("--latent", type=int, default=32)
+    ap.add_argument("--paired", type=int, default=32)
+    ap.add_argument("--base-steps", type=int, default=300)
+    ap.add_argument("--cells", action="store_true")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+
+    t = time.perf_counter()
+    load_mnist()
+    print(f"MNIST load + verify: {time.perf_counter() - t:.2f}s  (peak RSS {peak_rss_mb():.0f} MB)")
+    rate = matmul_gflops()
+    print(f"matmul 128x784 @ 784x512, 1 thread: {rate:.1f} GFLOP/s")
+
+    domain = get_domain("vae")
+    spec0 = CellSpec(domain="vae", paired=args.paired, vae_latent_dim=args.latent, base_train_steps=args.base_steps)
+    spec0 = spec0.resolved()
+    t = time.perf_counter()
+    agents, score = domain.train_base(spec0, seed=0)
+    per_base_update = (time.perf_counter() - t) / args.base_steps
+    base = BaseModel(agents=agents, key=spec0.base_key, score=score, attempts=1, seed=0)
+    base_flops = spec0.vae_base_batch * 2 * 3 * vae_macs(spec0.vae_latent_dim, spec0.vae_hidden)
+    print(f"base update (batch {spec0.vae_base_batch}): {per_base_update * 1e3:.1f} ms "
+          f"({base_flops / per_base_update / 1e9:.1f} GFLOP/s achieved, {base_flops / per_base_update / 1e9 / rate:.0%} of matmul) "
+          f"-> 5,000 updates ≈ {per_base_update * 5000:.0f}s")
+
+    for method in ("pc", "osp", "asp"):
+        spec = spec0.replace(method=method).resolved()
+        data_gen = torch.Generator().manual_seed(1)
+        paired = domain.paired(spec, base.agents, spec.paired, data_gen)
+        unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen)
+        trainer = Trainer(spec, domain, domain.new_agents(spec, 1), paired, unpaired, method_weights(spec))
+        for _ in range(10):
+            trainer.train_step()
+        t, c = time.perf_counter(), time.process_time()
+        for _ in range(args.updates):
+            trainer.train_step()
+        wall, cpu = (time.perf_counter() - t) / args.updates, (time.process_time() - c) / args.updates
+        flops = update_flops(spec)
+        print(f"{method:4s} update (paired {spec.paired}, d {spec.vae_latent_dim}): {wall * 1e3:.2f} ms wall, "
+              f"{cpu * 1e3:.2f} ms CPU; {flops / 1e9:.3f} GFLOP -> {flops / wall / 1e9:.1f} GFLOP/s "
+              f"({flops / wall / 1e9 / rate:.0%} of matmul); x {spec.train_steps} steps ≈ {wall * spec.train_steps:.1f}s")
+
+    if args.cells:
+        for method in ("pc", "osp", "asp"):
+            spec = spec0.replace(method=method)
+            row = run_cell(spec, base=base)
+            print(f"{method:4s} cell: train {row['time_train_wall_s']:.1f}s, eval {row['time_eval_wall_s']:.2f}s, "
+                  f"data {row['time_data_wall_s']:.2f}s, total {row['time_total_wall_s']:.1f}s wall / "
+                  f"{row['time_total_cpu_s']:.1f}s CPU")
+    print(f"peak RSS: {peak_rss_mb():.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
