@@ -346,8 +346,17 @@ def rank_tests(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> tu
             f["median_diff"] = sign * f["median_diff"]  # back to metric units (a - b)
             f["p_holm"] = float(p_holm)
             f["better"] = better_of(f["a"], f["b"], f["wins_a"], f["wins_b"], sign * f["median_diff"])
-            omnibus_p = rec.get("p_value", np.nan)
-            f["significant"] = bool(p_holm < cfg.alpha and (rec["test"] != "friedman" or omnibus_p < cfg.alpha))
+            # Primary view (the paper's): Friedman, then Nemenyi. Second view: Wilcoxon + Holm.
+            # With two treatments the Wilcoxon test is the only view.
+            omnibus_ok = rec["test"] != "friedman" or rec.get("p_value", np.nan) < cfg.alpha
+            f["significant_wilcoxon_holm"] = bool(omnibus_ok and p_holm < cfg.alpha)
+            if rec["test"] == "friedman":
+                f["significant_nemenyi"] = bool(omnibus_ok and f["p_nemenyi"] < cfg.alpha)
+                f["significant"] = f["significant_nemenyi"]
+            else:
+                f["significant_nemenyi"] = None
+                f["significant"] = f["significant_wilcoxon_holm"]
+            f["views_agree"] = f["significant"] == f["significant_wilcoxon_holm"]
         pairwise.extend(found)
     return omnibus, pairwise
 

@@ -153,6 +153,20 @@ def test_clear_effect_is_detected_with_asp_best():
     assert json.loads(tests["mean_ranks"])["asp"] < json.loads(tests["mean_ranks"])["pc"]
 
 
+def test_nemenyi_decides_and_wilcoxon_holm_is_the_second_view():
+    # ASP = OSP + 0.1 in 10 blocks, equal in 11, 0.05 worse in 3; PC far behind. The signed-rank test
+    # sees 10 of 13 non-zero differences favour ASP; Nemenyi's mean ranks (1.35 vs 1.65) do not separate them.
+    rows = pd.DataFrame(make_rows(paired=(0, 1, 2), noise=0.0))
+    rows["eval_mixed"] = rows["method"].map({"pc": 0.0, "osp": 1.0, "asp": 1.0})
+    asp = rows.index[rows.method == "asp"]
+    rows.loc[asp, "eval_mixed"] += [0.1] * 10 + [0.0] * 11 + [-0.05] * 3
+    res = compute(rows, cfg())
+    pw = res.tables["pairwise"].set_index(["a", "b"]).loc[("asp", "osp")]
+    assert pw["p_nemenyi"] > 0.05 and pw["p_holm"] < 0.05
+    assert not pw["significant"] and pw["significant_wilcoxon_holm"] and not pw["views_agree"]
+    assert res.tables["pairwise"].set_index(["a", "b"]).loc[("asp", "pc"), "significant"]
+
+
 def test_identical_methods_are_not_significant():
     same = {"pc": 0.0, "osp": 0.0, "asp": 0.0}
     res = compute(pd.DataFrame(make_rows(effect=same, noise=0.0)), cfg())
