@@ -219,8 +219,11 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
     notes = list(result.notes) + list(figure_notes)
     if notes:
         parts.append("\n" + "\n".join(f"- {n}" for n in notes) + "\n")
-    if missing.empty:
+    if missing.empty and result.grid_known:
         parts.append("\nNo missing cells: every planned cell finished and every block has every method.\n")
+    elif missing.empty:
+        parts.append("\nEvery block has every method. Without a manifest.json for every input the planned grid "
+                     "is unknown, so cells that never started cannot be listed.\n")
     else:
         parts.append(f"\n**Missing: {len(missing)} entries** (see `stats/missing.md` for all):\n\n")
         parts.append(to_markdown(missing.head(40)))

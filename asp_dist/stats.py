@@ -78,6 +78,7 @@ class StatsResult:
     tables: dict[str, pd.DataFrame]
     inputs: Inputs | None = None
     notes: list[str] = field(default_factory=list)
+    grid_known: bool = False  # every input sweep had a readable manifest.json
 
 
 # ---- small statistics, tested on known answers ---------------------------------------------------
@@ -587,7 +588,10 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
                      else pd.DataFrame()) for name, dfs in parts.items()}
     tables["missing"], more = completeness(all_rows, inputs)
     notes = more + notes
-    return StatsResult(cfg, all_rows, layouts, tables, inputs, notes)
+    grid_known = bool(inputs and inputs.sweep_dirs
+                      and all(read_manifest_ids(d) is not None for d in inputs.sweep_dirs)
+                      and all(any(d.resolve() / "cells" in f.parents for d in inputs.sweep_dirs) for f in inputs.files))
+    return StatsResult(cfg, all_rows, layouts, tables, inputs, notes, grid_known)
 
 
 def run_stats(paths: Sequence[str | Path], cfg: StatsConfig | None = None) -> StatsResult:

@@ -273,7 +273,7 @@ def test_partial_sweep_reports_missing_cells_and_incomplete_blocks(tmp_path):
     assert boom["paired"] == 8 and boom["error"] == "RuntimeError: boom"
     incomplete = missing[missing.kind == "incomplete block"]
     assert len(incomplete) == 4 and set(incomplete["trial"]) == {3}
-    assert any("44 of 49 planned cells finished" in n for n in res.notes)
+    assert any("44 of 49 planned cells finished" in n for n in res.notes) and res.grid_known
     # The stats still run on the complete blocks.
     assert res.tables["tests"].iloc[0]["n_blocks_incomplete"] == 4
 
@@ -281,7 +281,7 @@ def test_partial_sweep_reports_missing_cells_and_incomplete_blocks(tmp_path):
 def test_sweep_without_manifest_still_runs(tmp_path):
     sweep = write_sweep(tmp_path / "nomanifest", make_rows(trials=range(3)))
     res = run_stats([sweep], cfg())
-    assert any("no readable manifest" in n for n in res.notes)
+    assert any("no readable manifest" in n for n in res.notes) and not res.grid_known
     assert res.tables["missing"].empty
 
 
