@@ -291,7 +291,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None) -> Iter
         ray.shutdown()
 
 
-def _tune_experiment(sweep_dir: Path, pending: list[CellSpec]) -> tuple[str, bool]:
+def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
     """Name of the Tune experiment to run, and whether to restore it.
 
     An interrupted experiment is restored when it covers every pending cell (then its running
@@ -304,49 +304,63 @@ def _tune_experiment(sweep_dir: Path, pending: list[CellSpec]) -> tuple[str, boo
     if current_path.exists():
         current = json.loads(current_path.read_text())
         exp_path = tune_root / current["experiment"]
-        if pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(str(exp_path)):
+        if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(str(exp_path)):
             return current["experiment"], True
         number = int(current["experiment"].rsplit("-", 1)[1]) + 1
     else:
         number = 1
     experiment = f"run-{number}"
     tune_root.mkdir(parents=True, exist_ok=True)
-    text = json.dumps({"experiment": experiment, "cells": sorted(pending_ids)})
     tmp = current_path.with_name("." + TUNE_CURRENT + ".tmp")
-    tmp.write_text(text)
+    tmp.write_text(json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
     os.replace(tmp, current_path)
     return experiment, False
 
 
 def _run_tune(sweep_dir: Path, name: str, pending: list[CellSpec], workers: int, max_failures: int,
               checkpoint_every_s: float) -> None:
-    experiment, restore = _tune_experiment(sweep_dir, pending)
-    trainable = tune.with_resources(train_cell, {"cpu": 1})
-    storage = str(sweep_dir / TUNE_DIR)
-    if restore:
-        tuner = tune.Tuner.restore(str(Path(storage) / experiment), trainable=trainable,
-                                   resume_unfinished=True, resume_errored=True)
-    else:
-        configs = [{"spec": s.to_dict(), "cell_id": s.cell_id, "sweep_dir": str(sweep_dir), "sweep_id": name,
-                    "checkpoint_every_s": checkpoint_every_s} for s in pending]
-        tuner = tune.Tuner(
-            trainable,
-            param_space={"cell": tune.grid_search(configs)},
-            tune_config=tune.TuneConfig(max_concurrent_trials=workers, reuse_actors=True,
-                                        trial_name_creator=trial_name, trial_dirname_creator=trial_name),
-            run_config=tune.RunConfig(
-                name=experiment, storage_path=storage, verbose=0,
-                failure_config=tune.FailureConfig(max_failures=max_failures),
-                # num_to_keep=1 also makes Tune save its experiment state after every trial
-                # checkpoint, so a killed driver resumes each cell from its latest checkpoint.
-                checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-                callbacks=[SweepCallback(str(sweep_dir))],
-            ),
-        )
     # Rows live in Parquet, not in Tune's per-trial logs (disabled above): silence Tune's
     # complaint that it cannot build its own result table from them.
     logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)
-    tuner.fit()
+    experiment, restore = _tune_experiment(sweep_dir, pending)
+    if restore:
+        try:
+            _tuner(sweep_dir, name, experiment, True, pending, workers, max_failures, checkpoint_every_s).fit()
+        except Exception as e:  # noqa: BLE001 - an unreadable Tune state must not block the sweep
+            log.warning("could not restore Tune experiment %s (%s); starting a new one", experiment, e)
+        # Tune does not rerun trials it saw finish, e.g. a cell that failed deterministically
+        # (recorded under failed/): whatever is still missing runs in a fresh experiment.
+        pending = [s for s in pending if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)]
+        if not pending:
+            return
+        experiment, _ = _tune_experiment(sweep_dir, pending, allow_restore=False)
+    _tuner(sweep_dir, name, experiment, False, pending, workers, max_failures, checkpoint_every_s).fit()
+
+
+def _tuner(sweep_dir: Path, name: str, experiment: str, restore: bool, pending: list[CellSpec], workers: int,
+           max_failures: int, checkpoint_every_s: float) -> tune.Tuner:
+    trainable = tune.with_resources(train_cell, {"cpu": 1})
+    storage = sweep_dir / TUNE_DIR
+    if restore:
+        # Restores the stored Tune settings too (max_failures, checkpoint interval of the cells).
+        return tune.Tuner.restore(str(storage / experiment), trainable=trainable,
+                                  resume_unfinished=True, resume_errored=True)
+    configs = [{"spec": s.to_dict(), "cell_id": s.cell_id, "sweep_dir": str(sweep_dir), "sweep_id": name,
+                "checkpoint_every_s": checkpoint_every_s} for s in pending]
+    return tune.Tuner(
+        trainable,
+        param_space={"cell": tune.grid_search(configs)},
+        tune_config=tune.TuneConfig(max_concurrent_trials=workers, reuse_actors=True,
+                                    trial_name_creator=trial_name, trial_dirname_creator=trial_name),
+        run_config=tune.RunConfig(
+            name=experiment, storage_path=str(storage), verbose=0,
+            failure_config=tune.FailureConfig(max_failures=max_failures),
+            # num_to_keep=1 also makes Tune save its experiment state after every trial
+            # checkpoint, so a killed driver resumes each cell from its latest checkpoint.
+            checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
+            callbacks=[SweepCallback(str(sweep_dir))],
+        ),
+    )
 
 
 # ---- public entry points ------------------------------------------------------------------------
