@@ -328,3 +328,35 @@ def test_int_and_float_columns_widen_and_temp_files_are_ignored(tmp_path):
 def test_missing_metric_column_is_a_clear_error():
     with pytest.raises(SpecError, match="metric column 'eval_nope'"):
         compute(pd.DataFrame(make_rows(trials=range(2))), cfg(metric="eval_nope"))
+
+
+def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
+    """Rows from run_cell itself (tiny signaling cells), stored as the sweep service stores them."""
+    from asp_dist.cell import run_cell
+    from asp_dist.cli_stats import run_job
+    from asp_dist.spec import CellSpec
+
+    sweep = tmp_path / "real"
+    ids = []
+    for trial in range(2):
+        for paired in (0, 2):
+            for method in ("pc", "osp", "asp"):
+                spec = CellSpec(domain="signaling", method=method, paired=paired, trial=trial, train_steps=40,
+                                batch_size=16, unpaired_size=64)
+                row = dict(run_cell(spec), sweep_id="real")
+                row["torch_version"] = str(row["torch_version"])
+                table = pa.Table.from_pylist([row])
+                for col in ("domain", "method"):  # the store keeps these dictionary-encoded
+                    table = table.set_column(table.schema.get_field_index(col), col,
+                                             table.column(col).dictionary_encode())
+                d = sweep / "cells" / f"domain=signaling" / f"method={method}"
+                d.mkdir(parents=True, exist_ok=True)
+                pq.write_table(table, d / f"{row['cell_id']}.parquet")
+                ids.append(row["cell_id"])
+    (sweep / "manifest.json").write_text(json.dumps({"cells": ids + ["signaling-asp-p4-t0-0000000000"]}))
+    report = run_job([str(sweep)], cfg=cfg(), figures=False, log=lambda m: None)
+    text = report.read_text()
+    assert "12 rows" in text and "signaling-asp-p4-t0-0000000000" in text
+    summary = pd.read_parquet(sweep / "stats" / "summary.parquet")
+    assert set(summary["treatment"]) == {"pc", "osp", "asp"} and set(summary["n"]) == {2}
+    assert summary["higher_is_better"].all()
