@@ -60,8 +60,9 @@ DEFAULT_CHECKPOINT_EVERY_S = 30.0
 LOCK_FILE = ".lock"
 TUNE_DIR = "tune"
 TUNE_CURRENT = "current.json"  # which Tune experiment covers which cells
-# Test hook, comma-separated "<cell_id substring>:<train step>:<marker file or 'always'>": SIGKILLs
-# the worker running a matching cell once (the marker records that it happened) or every time.
+# Test hook, comma-separated "<cell_id substring>:<train step>:<marker file | always | raise>":
+# SIGKILLs the worker running a matching cell once (the marker records that it happened) or
+# every time, or raises a deterministic failure (BaseRejected) in it.
 FAULT_ENV = "ASP_DIST_FAULT_KILL_WORKER"
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,8 @@ def _fault_injector(cell_id: str):
         return None
 
     def progress(phase: str, done: int, total: int, info: dict) -> None:
+        if phase == "train" and done >= int(step) and marker == "raise":
+            raise BaseRejected(f"injected deterministic failure of {cell_id}")
         if phase == "train" and done >= int(step) and (marker == "always" or not os.path.exists(marker)):
             if marker != "always":
                 Path(marker).write_text(f"killed {cell_id} at step {done}\n")

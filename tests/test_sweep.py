@@ -144,34 +144,38 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
     assert not store.failed_cells(results / "k")
 
 
-def test_killed_worker_is_retried_and_a_failing_cell_does_not_stop_the_sweep(tmp_path):
+def test_killed_worker_is_retried_and_failing_cells_do_not_stop_the_sweep(tmp_path):
     grid = space(tmp_path, """
 [[grid]]
 fixed = { train_steps = 400, unpaired_size = 256, method = "asp", trial = 0 }
-axes = { paired = [0, 2, 4] }
+axes = { paired = [0, 2, 4, 8] }
 """)
     specs = expand(grid)
     by_paired = {s.paired: s.cell_id for s in specs}
     marker = tmp_path / "killed-once"
-    fault = f"{by_paired[2]}:150:{marker},{by_paired[4]}:50:always"
+    fault = f"{by_paired[2]}:150:{marker},{by_paired[4]}:50:always,{by_paired[8]}:50:raise"
     first = cli("sweep", grid, "--name", "f", "--results", str(tmp_path), "--max-failures", "1",
                 "--checkpoint-every", "0.2", **{FAULT_ENV: fault})
     assert first.returncode == 1, first.stderr[-3000:]
-    assert "2/3 cells done, 1 failed" in first.stdout
+    assert "2/4 cells done, 2 failed" in first.stdout
     assert marker.exists(), "the worker of the p2 cell was not killed"
     done = store.read_rows(tmp_path / "f")
-    assert set(done["cell_id"]) == {by_paired[0], by_paired[2]}
+    assert set(done["cell_id"]) == {by_paired[0], by_paired[2]}, "the killed worker's cell did not complete"
     failed = store.failed_cells(tmp_path / "f")
-    assert set(failed) == {by_paired[4]} and "failed after 2 attempt(s)" in failed[by_paired[4]]["error"]
+    assert set(failed) == {by_paired[4], by_paired[8]}
+    assert "failed after 2 attempt(s)" in failed[by_paired[4]]["error"]  # worker died twice: 1 retry
+    assert "BaseRejected: injected" in failed[by_paired[8]]["error"]  # deterministic: no retry
     status = cli("status", "f", "--results", str(tmp_path)).stdout
-    assert status.splitlines()[-2].split() == ["total", "2", "1", "0"] and f"failed {by_paired[4]}" in status
+    assert status.splitlines()[-3].split() == ["total", "2", "2", "0"] and f"failed {by_paired[4]}" in status
 
-    # resume retries the failed cell (the fault is gone) and never touches finished ones.
+    # resume retries the failed cells (the faults are gone) and never touches finished ones: the
+    # worker-killed cell in the restored Tune experiment, the deterministic one in a fresh one.
     mtimes = {f: f.stat().st_mtime_ns for f in parquet_files(tmp_path / "f")}
     second = cli("resume", "f", "--results", str(tmp_path))
     assert second.returncode == 0, second.stderr[-3000:]
     assert all(f.stat().st_mtime_ns == m for f, m in mtimes.items())
     assert not store.failed_cells(tmp_path / "f")
+    assert (tmp_path / "f" / "tune" / "run-2").is_dir()
     assert_rows_match(tmp_path / "f", expected_rows(specs))
 
 
@@ -185,7 +189,8 @@ def free_port() -> int:
 def two_node_cluster(tmp_path):
     port = free_port()
     address = f"127.0.0.1:{port}"
-    common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1"]
+    common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
+              "--object-store-memory=100000000"]
     head = subprocess.Popen(["ray", "start", "--head", f"--port={port}", "--include-dashboard=false",
                              "--temp-dir=/tmp/asp-rt-h", *common], env=env(), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
