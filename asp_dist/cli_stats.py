@@ -67,10 +67,13 @@ def run_job(inputs: Sequence[str], out: str | None = None, cfg=None, figures: bo
     from asp_dist.report import write_report
     from asp_dist.stats import run_stats, write_tables
 
+    from asp_dist.query import cell_files
+
+    cell_files(inputs)  # a missing or empty input is the first thing to report
     out_dir = output_dir(inputs, out)
     start = time.perf_counter()
     result = run_stats(inputs, cfg)
-    log(f"read {len(result.rows)} rows from {len(result.inputs.files)} files "
+    log(f"read and analysed {len(result.rows)} rows from {len(result.inputs.files)} files "
         f"({', '.join(sorted(result.layouts))}) in {time.perf_counter() - start:.1f} s")
     written = write_tables(result, out_dir)
     log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
