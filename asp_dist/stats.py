@@ -500,34 +500,31 @@ def read_failures(sweep_dir: Path) -> dict[str, str]:
 CELL_ID = re.compile(r"^(?P<domain>[a-z]+)-(?P<method>[a-z]+)-p(?P<paired>\d+)-t(?P<trial>\d+)-")
 
 
-def completeness(rows: pd.DataFrame, inputs: Inputs | None) -> tuple[pd.DataFrame, list[str]]:
-    """Missing cells: manifest ids without a row (per sweep), and blocks lacking a treatment."""
+def completeness(rows: pd.DataFrame, inputs: Inputs | None,
+                 layouts: dict[str, DomainLayout] | None = None) -> tuple[pd.DataFrame, list[str]]:
+    """Missing cells: manifest ids without a row and failed cells (per sweep), and blocks lacking a treatment."""
     missing, notes = [], []
-    if inputs is not None:
-        for sweep in inputs.sweep_dirs:
-            expected = read_manifest_ids(sweep)
-            if expected is None:
-                notes.append(f"{sweep.name}: no readable manifest.json, the planned grid is unknown; "
-                             "only incomplete blocks are reported")
-                continue
-            cells_dir = (sweep / "cells").resolve()
-            found = set()
-            for f in inputs.files:
-                if cells_dir in f.parents:
-                    schema = pq.read_schema(f)
-                    found.update(pq.read_table(f, columns=["cell_id"]).column(0).to_pylist() if "cell_id" in schema.names else [f.stem])
-            failed = read_failures(sweep)
+    layouts = layouts or {}
+    for sweep in (inputs.sweep_dirs if inputs is not None else []):
+        expected = read_manifest_ids(sweep)
+        specs = read_manifest_specs(sweep)
+        failed = read_failures(sweep)
+        cells_dir = (sweep / "cells").resolve()
+        # The store names every file <cell_id>.parquet (its own completeness check relies on it too).
+        found = {f.stem for f in inputs.files if cells_dir in f.parents}
+        if expected is None:
+            notes.append(f"{sweep.name}: no readable manifest.json, the planned grid is unknown; "
+                         "only failed cells and incomplete blocks are reported")
+            gone = [c for c in failed if c not in found]
+        else:
             gone = [c for c in dict.fromkeys(expected) if c not in found]
-            notes.append(f"{sweep.name}: {len(set(expected)) - len(gone)} of {len(set(expected))} planned cells finished"
-                         + (f", {len(gone)} missing" if gone else ""))
-            for cid in gone:
-                m = CELL_ID.match(cid)
-                error = failed.get(cid)
-                missing.append({"sweep": sweep.name, "kind": "failed" if error else "not finished (manifest)",
-                                "cell_id": cid, "error": error,
-                                **({k: (int(v) if k in ("paired", "trial") else v) for k, v in m.groupdict().items()} if m else {})})
-            if failed:
-                notes.append(f"{sweep.name}: {len(failed)} cell(s) recorded as failed under failed/")
+            notes.append(f"{sweep.name}: {len(set(expected)) - len(gone)} of {len(set(expected))} planned cells "
+                         "finished" + (f", {len(gone)} missing" if gone else ""))
+        if failed:
+            notes.append(f"{sweep.name}: {len(failed)} cell(s) recorded as failed under failed/")
+        for cid in gone:
+            missing.append({"sweep": sweep.name, "kind": "failed" if cid in failed else "not finished (manifest)",
+                            "cell_id": cid, "error": failed.get(cid), **describe_cell(cid, specs.get(cid), layouts)})
     for (domain, cond), g in rows.groupby(["domain", "condition"], sort=True):
         treatments = treatment_order(g["treatment"])
         for (seed, trial, paired), b in g.groupby(["root_seed", "trial", "paired"], sort=True):
@@ -539,6 +536,31 @@ def completeness(rows: pd.DataFrame, inputs: Inputs | None) -> tuple[pd.DataFram
     df = pd.DataFrame(missing, columns=cols)
     # A manifest-missing cell also leaves its block incomplete; keep both views, they answer different questions.
     return df, notes
+
+
+def read_manifest_specs(sweep_dir: Path) -> dict[str, dict]:
+    """cell_id -> resolved spec dict when the manifest stores "specs" aligned with "cells", else {}."""
+    try:
+        data = json.loads((Path(sweep_dir) / "manifest.json").read_text())
+        ids, specs = data["cells"], data["specs"]
+        if isinstance(ids, list) and isinstance(specs, list) and len(ids) == len(specs):
+            return {str(i): s for i, s in zip(ids, specs) if isinstance(s, dict)}
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return {}
+
+
+def describe_cell(cell_id: str, spec: dict | None, layouts: dict[str, DomainLayout]) -> dict[str, Any]:
+    """domain, method, paired, trial (and the condition, when the domain's knobs are known) of a missing cell."""
+    if spec:
+        out = {k: spec.get(k) for k in ("domain", "method", "paired", "trial")}
+        layout = layouts.get(spec.get("domain"))
+        if layout is not None:
+            out["condition"] = (", ".join(f"{k}={_fmt_value(spec.get(k))}" for k in layout.shared_knobs)
+                                if layout.shared_knobs else "all")
+        return out
+    m = CELL_ID.match(cell_id)
+    return {k: (int(v) if k in ("paired", "trial") else v) for k, v in m.groupdict().items()} if m else {}
 
 
 # ---- the job --------------------------------------------------------------------------------------
@@ -586,7 +608,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
     all_rows = pd.concat(labelled, ignore_index=True)
     tables = {name: (pd.concat([p for p in dfs if not p.empty], ignore_index=True) if any(not p.empty for p in dfs)
                      else pd.DataFrame()) for name, dfs in parts.items()}
-    tables["missing"], more = completeness(all_rows, inputs)
+    tables["missing"], more = completeness(all_rows, inputs, layouts)
     notes = more + notes
     grid_known = bool(inputs and inputs.sweep_dirs
                       and all(read_manifest_ids(d) is not None for d in inputs.sweep_dirs)

@@ -278,6 +278,28 @@ def test_partial_sweep_reports_missing_cells_and_incomplete_blocks(tmp_path):
     assert res.tables["tests"].iloc[0]["n_blocks_incomplete"] == 4
 
 
+def test_missing_cells_are_described_from_the_manifest_specs(tmp_path):
+    rows = make_rows(trials=range(2), knobs={"signaling_skew": [0.0, 2.0]})
+    gone = rows.pop()  # the last cell never finished
+    sweep = write_sweep(tmp_path / "specs", rows)
+    planned = rows + [gone]
+    (sweep / "manifest.json").write_text(json.dumps({
+        "cells": [r["cell_id"] for r in planned],
+        "specs": [{k: r[k] for k in ("domain", "method", "paired", "trial", "signaling_skew")} for r in planned]}))
+    missing = run_stats([sweep], cfg()).tables["missing"]
+    rec = missing[missing.kind == "not finished (manifest)"].iloc[0]
+    assert rec["cell_id"] == gone["cell_id"] and rec["condition"] == "signaling_skew=2"
+    assert (rec["method"], rec["paired"], rec["trial"]) == (gone["method"], gone["paired"], gone["trial"])
+
+
+def test_failed_cells_are_reported_without_a_manifest(tmp_path):
+    sweep = write_sweep(tmp_path / "nomanifest-failed", make_rows(trials=range(2)))
+    (sweep / "failed").mkdir()
+    (sweep / "failed" / "signaling-pc-p8-t0-ffff.json").write_text(json.dumps({"error": "ValueError: nan loss"}))
+    missing = run_stats([sweep], cfg()).tables["missing"]
+    assert missing.iloc[0]["kind"] == "failed" and missing.iloc[0]["error"] == "ValueError: nan loss"
+
+
 def test_sweep_without_manifest_still_runs(tmp_path):
     sweep = write_sweep(tmp_path / "nomanifest", make_rows(trials=range(3)))
     res = run_stats([sweep], cfg())
