@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from asp_dist.plots import Figure
-from asp_dist.stats import StatsResult, _cell, is_asp, to_markdown, treatment_order
+from asp_dist.stats import StatsResult, format_cell, is_asp, to_markdown, treatment_order
 
 # The paper's claims, to say next to our verdicts whether they held.
 PAPER_CLAIMS = {
@@ -133,7 +133,7 @@ def grid_description(result: StatsResult) -> pd.DataFrame:
                     "methods": ", ".join(treatment_order(rows["treatment"])),
                     "paired": ", ".join(str(p) for p in sorted(rows["paired"].unique())),
                     "trials": f"{rows['trial'].nunique()} ({rows['trial'].min()}–{rows['trial'].max()})",
-                    "varied knobs": "; ".join(f"{k} = {', '.join(_cell(v) for v in vs)}" for k, vs in knobs.items()) or "none",
+                    "varied knobs": "; ".join(f"{k} = {', '.join(format_cell(v) for v in vs)}" for k, vs in knobs.items()) or "none",
                     "direction": "higher is better" if layout.higher_is_better else "lower is better",
                     "sweeps": ", ".join(sorted(rows["sweep_id"].dropna().astype(str).unique())) if "sweep_id" in rows else "–"})
     return pd.DataFrame(out)
@@ -143,7 +143,7 @@ def _summary_compact(summary: pd.DataFrame) -> pd.DataFrame:
     s = summary.copy()
     s["median [Q1, Q3]"] = [f"{m:.4g} [{a:.4g}, {b:.4g}]" for m, a, b in zip(s["median"], s["q1"], s["q3"])]
     s["95% CI of median"] = [f"[{a:.4g}, {b:.4g}]" for a, b in zip(s["ci_low"], s["ci_high"])]
-    s["mean ± sd"] = [f"{m:.4g} ± {_cell(sd, 3)}" for m, sd in zip(s["mean"], s["std"])]
+    s["mean ± sd"] = [f"{m:.4g} ± {format_cell(sd, 3)}" for m, sd in zip(s["mean"], s["std"])]
     return s[["condition", "treatment", "paired", "n", "median [Q1, Q3]", "95% CI of median", "mean ± sd"]]
 
 

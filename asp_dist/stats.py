@@ -623,7 +623,7 @@ def run_stats(paths: Sequence[str | Path], cfg: StatsConfig | None = None) -> St
 
 # ---- writing --------------------------------------------------------------------------------------
 
-def _cell(v: Any, digits: int = 4) -> str:
+def format_cell(v: Any, digits: int = 4) -> str:
     if v is None or (isinstance(v, float) and np.isnan(v)):
         return "–"
     if isinstance(v, (bool, np.bool_)):
@@ -643,7 +643,7 @@ def to_markdown(df: pd.DataFrame, columns: Sequence[str] | None = None) -> str:
     cols = [c for c in (columns or df.columns) if c in df.columns]
     lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
     for rec in df[cols].itertuples(index=False, name=None):
-        lines.append("| " + " | ".join(_cell(v) for v in rec) + " |")
+        lines.append("| " + " | ".join(format_cell(v) for v in rec) + " |")
     return "\n".join(lines) + "\n"
 
 
