@@ -26,7 +26,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from asp_dist.stats import StatsResult, bootstrap_median_ci, group_seed, is_asp, treatment_order  # noqa: E402
+from asp_dist.stats import (StatsResult, bootstrap_median_ci, condition_key, group_seed, is_asp,  # noqa: E402
+                            treatment_order)
 
 METRIC_UNITS: dict[tuple[str, str], str] = {
     ("particles", "eval_mixed"): "mixed-team reward per 40-step episode",
@@ -70,6 +71,14 @@ def _use_log2(values: np.ndarray) -> bool:
     return len(positive) >= 3 and positive.max() / positive.min() >= 8
 
 
+def _maybe_log_y(axes: list[plt.Axes], low: pd.Series, high: pd.Series) -> None:
+    """Log y axis for positive metrics spanning more than a decade (VAE MSE: 0.006 … 0.1)."""
+    lo, hi = float(np.nanmin(low)), float(np.nanmax(high))
+    if lo > 0 and hi / lo >= 20:
+        for ax in axes:
+            ax.set_yscale("log")
+
+
 def _save(fig: plt.Figure, out_dir: Path, stem: str) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -104,7 +113,11 @@ def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Fi
     if s.empty:
         return None
     layout = result.layouts[domain]
-    conditions = sorted(s["condition"].unique())[:MAX_PANELS]
+    # Conditions swept over a single paired count (e.g. the VAE latent-size sweep) belong to the knob figure.
+    conditions = [c for c in sorted(s["condition"].unique(), key=condition_key) if s.loc[s["condition"] == c, "paired"].nunique() >= 2]
+    if not conditions:
+        return None
+    conditions = conditions[:MAX_PANELS]
     fig, axes = _panels(len(conditions))
     log2 = _use_log2(s["paired"].to_numpy())
     for ax, cond in zip(axes, conditions):
@@ -122,6 +135,7 @@ def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Fi
         if cond != "all":
             ax.set_title(cond, fontsize=10)
         ax.grid(alpha=0.3)
+    _maybe_log_y(axes, s["q1"], s["q3"])
     axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
     axes[0].legend(fontsize=8)
     n_trials = int(result.rows.loc[result.rows["domain"] == domain, "trial"].nunique())
@@ -177,6 +191,7 @@ def plot_metric_vs_knob(result: StatsResult, domain: str, knob: str, out_dir: Pa
             ax.set_xlabel(KNOB_LABELS.get(knob, knob))
             ax.set_title(f"{paired} paired" + (f", {suffix}" if suffix else ""), fontsize=10)
             ax.grid(alpha=0.3)
+        _maybe_log_y(axes, g["q1"], g["q3"])
         axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
         axes[0].legend(fontsize=8)
         fig.suptitle(f"{domain}: {result.config.metric} against {knob} (median and quartiles)", fontsize=11)

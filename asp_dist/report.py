@@ -72,7 +72,7 @@ def headline_sentences(result: StatsResult) -> list[str]:
     pairwise = result.tables["pairwise"]
     if pairwise.empty:
         return ["No condition had two methods with complete blocks to compare."]
-    for (domain, cond), g in pairwise.groupby(["domain", "condition"], sort=True):
+    for (domain, cond), g in pairwise.groupby(["domain", "condition"], sort=False):
         asp_pairs = g[g["a"].map(is_asp) & ~g["b"].map(is_asp)]
         if asp_pairs.empty:
             lines.append(f"- **{domain}** ({cond}): no ASP rows to compare.")
@@ -110,7 +110,7 @@ def where_table(result: StatsResult) -> pd.DataFrame:
     if bp.empty:
         return pd.DataFrame()
     out = []
-    for (domain, cond, paired), g in bp.groupby(["domain", "condition", "paired"], sort=True):
+    for (domain, cond, paired), g in bp.groupby(["domain", "condition", "paired"], sort=False):
         row = {"domain": domain, "condition": cond, "paired": int(paired)}
         for _, p in g.iterrows():
             mark = "=" if p["better"] == "tie" else ("+" if p["better"] == p["a"] else "−")
@@ -200,7 +200,7 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
     if claim.empty:
         parts.append("_Not testable: no paired counts n and 2n both present for ASP and another method._\n")
     else:
-        for (domain, cond, other), g in claim.groupby(["domain", "condition", "other"], sort=True):
+        for (domain, cond, other), g in claim.groupby(["domain", "condition", "other"], sort=False):
             held = [str(n) for n, h in zip(g["n"], g["holds"]) if h]
             sure = [str(n) for n, v in zip(g["n"], g["verdict"]) if v.startswith("beats")]
             parts.append(f"- {domain} ({cond}) vs {other.upper()}: holds (medians) at n = {', '.join(held) or 'none'}"

@@ -237,6 +237,24 @@ def treatment_order(names: Sequence[str]) -> list[str]:
     return sorted(set(names), key=key)
 
 
+def condition_key(condition: str) -> tuple:
+    """Natural order of condition labels: "vae_latent_dim=8" before "vae_latent_dim=16"."""
+    key = []
+    for part in condition.split(", "):
+        name, _, value = part.partition("=")
+        try:
+            key.append((name, 0, float(value), ""))
+        except ValueError:
+            key.append((name, 1, 0.0, value))
+    return tuple(key)
+
+
+def by_condition(rows: pd.DataFrame):
+    """(condition, rows) in natural condition order."""
+    for cond in sorted(rows["condition"].unique(), key=condition_key):
+        yield cond, rows[rows["condition"] == cond]
+
+
 def is_asp(treatment: str) -> bool:
     return treatment.split("[")[0] == "asp"
 
@@ -261,7 +279,9 @@ def summary_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) ->
     df = pd.DataFrame(out)
     order = {t: i for i, t in enumerate(treatment_order(df["treatment"]))}
     df["_order"] = df["treatment"].map(order)
-    return df.sort_values(["condition", "_order", "paired"], kind="stable").drop(columns="_order").reset_index(drop=True)
+    conditions = {c: i for i, c in enumerate(sorted(df["condition"].unique(), key=condition_key))}
+    df["_cond"] = df["condition"].map(conditions)
+    return df.sort_values(["_cond", "_order", "paired"], kind="stable").drop(columns=["_order", "_cond"]).reset_index(drop=True)
 
 
 def paired_range_for(domain: str, cfg: StatsConfig, available: Sequence[int]) -> tuple[int, int]:
@@ -300,7 +320,7 @@ def better_of(a: str, b: str, wins_a: int, wins_b: int, median_diff: float) -> s
 def rank_tests(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> tuple[list[dict], list[dict]]:
     """Friedman (or the two-treatment Wilcoxon) per condition over the paired range, with post-hocs."""
     omnibus, pairwise = [], []
-    for cond, g in rows.groupby("condition", sort=True):
+    for cond, g in by_condition(rows):
         lo, hi = paired_range_for(layout.domain, cfg, g["paired"].unique())
         in_range = g[(g["paired"] >= lo) & (g["paired"] <= hi)]
         treatments = treatment_order(in_range["treatment"])
@@ -365,7 +385,7 @@ def rank_tests(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> tu
 def by_paired_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> list[dict]:
     """ASP against each other treatment at every paired count (where does ASP help?), Holm per condition."""
     out = []
-    for cond, g in rows.groupby("condition", sort=True):
+    for cond, g in by_condition(rows):
         treatments = treatment_order(g["treatment"])
         asps = [t for t in treatments if is_asp(t)]
         pairs = [(a, b) for a in asps for b in treatments if not is_asp(b)] if asps else list(combinations(treatments, 2))
@@ -416,7 +436,7 @@ def efficiency_tables(rows: pd.DataFrame, summary: pd.DataFrame, cfg: StatsConfi
                     "median_there": float(hit["median"].iloc[0]) if len(hit) else None})
     claim = []
     sign = 1.0 if higher else -1.0
-    for cond, g in rows.groupby("condition", sort=True):
+    for cond, g in by_condition(rows):
         treatments = treatment_order(g["treatment"])
         for a in (t for t in treatments if is_asp(t)):
             for b in (t for t in treatments if not is_asp(t)):
@@ -525,13 +545,14 @@ def completeness(rows: pd.DataFrame, inputs: Inputs | None,
         for cid in gone:
             missing.append({"sweep": sweep.name, "kind": "failed" if cid in failed else "not finished (manifest)",
                             "cell_id": cid, "error": failed.get(cid), **describe_cell(cid, specs.get(cid), layouts)})
-    for (domain, cond), g in rows.groupby(["domain", "condition"], sort=True):
-        treatments = treatment_order(g["treatment"])
-        for (seed, trial, paired), b in g.groupby(["root_seed", "trial", "paired"], sort=True):
-            for t in treatments:
-                if t not in set(b["treatment"]):
-                    missing.append({"sweep": "", "kind": "incomplete block", "cell_id": None, "domain": domain,
-                                    "method": t, "paired": int(paired), "trial": int(trial), "condition": cond})
+    for domain, in_domain in rows.groupby("domain", sort=True):
+        for cond, g in by_condition(in_domain):
+            treatments = treatment_order(g["treatment"])
+            for (seed, trial, paired), b in g.groupby(["root_seed", "trial", "paired"], sort=True):
+                for t in treatments:
+                    if t not in set(b["treatment"]):
+                        missing.append({"sweep": "", "kind": "incomplete block", "cell_id": None, "domain": domain,
+                                        "method": t, "paired": int(paired), "trial": int(trial), "condition": cond})
     cols = ["sweep", "kind", "domain", "condition", "method", "paired", "trial", "cell_id", "error"]
     df = pd.DataFrame(missing, columns=cols)
     # A manifest-missing cell also leaves its block incomplete; keep both views, they answer different questions.
