@@ -382,3 +382,12 @@ def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
     summary = pd.read_parquet(sweep / "stats" / "summary.parquet")
     assert set(summary["treatment"]) == {"pc", "osp", "asp"} and set(summary["n"]) == {2}
     assert summary["higher_is_better"].all()
+
+
+def test_conditions_are_in_natural_order():
+    rows = pd.DataFrame(make_rows(domain="vae", paired=(32,), trials=range(2), higher=False,
+                                  knobs={"vae_latent_dim": [2, 16, 128, 8]}))
+    res = compute(rows, cfg())
+    expected = [f"vae_latent_dim={d}" for d in (2, 8, 16, 128)]
+    assert list(res.tables["tests"]["condition"]) == expected
+    assert list(dict.fromkeys(res.tables["summary"]["condition"])) == expected
