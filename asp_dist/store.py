@@ -39,6 +39,7 @@ CELLS_DIR = "cells"
 FAILED_DIR = "failed"
 MANIFEST = "manifest.json"
 PARTITION_COLUMNS = ("domain", "method")
+SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
 _ARROW_TYPES = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
 
 
@@ -229,5 +230,3 @@ def read_rows(sweep_dir: Path) -> "pandas.DataFrame":  # noqa: F821
         df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
     return df.sort_values("cell_id", kind="stable").reset_index(drop=True)
 
-
-SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")

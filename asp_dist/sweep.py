@@ -404,8 +404,10 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
     check_writable(sweep_dir)
     stream = stream or sys.stderr
     with sweep_lock(sweep_dir):
-        manifest = check_manifest(sweep_dir, name, specs, space)
-        store.write_manifest(sweep_dir, manifest)
+        if store.read_manifest(sweep_dir) is None:
+            store.write_manifest(sweep_dir, check_manifest(sweep_dir, name, specs, space))
+        else:
+            check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
         grid_ids = {s.cell_id for s in specs}
         done = store.done_cell_ids(sweep_dir) & grid_ids
         pending = [s for s in specs if s.cell_id not in done]

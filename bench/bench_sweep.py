@@ -54,27 +54,27 @@ def specs(steps: int) -> list[CellSpec]:
 
 
 def _one_cell(args) -> float:
+    """CPU seconds of one cell (its row's time_total_cpu_s)."""
     spec, cache = args
     torch.set_num_threads(1)
     base, _ = get_base(spec, Path(cache))
-    return run_cell(spec, base=base)["time_total_wall_s"]
+    return run_cell(spec, base=base)["time_total_cpu_s"]
 
 
-def run_sequential(cells, cache) -> float:
+def run_sequential(cells, cache) -> tuple[float, float]:
     t = time.perf_counter()
-    for spec in cells:
-        _one_cell((spec, cache))
-    return time.perf_counter() - t
+    cpu = sum(_one_cell((spec, cache)) for spec in cells)
+    return time.perf_counter() - t, cpu
 
 
-def run_pool(cells, cache) -> float:
+def run_pool(cells, cache) -> tuple[float, float]:
     t = time.perf_counter()
     with mp.get_context("spawn").Pool(2) as pool:
-        pool.map(_one_cell, [(s, cache) for s in cells], chunksize=1)
-    return time.perf_counter() - t
+        cpu = sum(pool.map(_one_cell, [(s, cache) for s in cells], chunksize=1))
+    return time.perf_counter() - t, cpu
 
 
-def run_sweep_cli(space: Path, results: Path, workers: int) -> tuple[float, float]:
+def run_sweep_cli(space: Path, results: Path, workers: int) -> tuple[float, float, float]:
     t = time.perf_counter()
     subprocess.run([sys.executable, "-m", "asp_dist.cli", "sweep", str(space), "--name", f"w{workers}",
                     "--results", str(results), "--workers", str(workers)], check=True,
@@ -86,7 +86,7 @@ def run_sweep_cli(space: Path, results: Path, workers: int) -> tuple[float, floa
     files = sorted((results / f"w{workers}" / "cells").glob("domain=*/method=*/*.parquet"))
     ends = {f.stem: f.stat().st_mtime for f in files}
     starts = [ends[r.cell_id] - r.time_total_wall_s for r in df.itertuples()]
-    return total, max(ends.values()) - min(starts)
+    return total, max(ends.values()) - min(starts), float(df["time_total_cpu_s"].sum())
 
 
 def main() -> int:
@@ -104,13 +104,13 @@ def main() -> int:
         tmp = Path(tmp)
         space = tmp / "bench.toml"
         space.write_text(bench_space(args.steps))
-        out["sequential_s"] = run_sequential(cells, tmp / "bases-seq")
-        print(f"(a) sequential       {out['sequential_s']:7.1f} s", flush=True)
-        out["pool2_s"] = run_pool(cells, tmp / "bases-pool")
-        print(f"(b) Pool(2)          {out['pool2_s']:7.1f} s", flush=True)
-        out["sweep2_total_s"], out["sweep2_span_s"] = run_sweep_cli(space, tmp / "results", 2)
+        out["sequential_s"], out["sequential_cell_cpu_s"] = run_sequential(cells, tmp / "bases-seq")
+        print(f"(a) sequential        {out['sequential_s']:6.1f} s", flush=True)
+        out["pool2_s"], out["pool2_cell_cpu_s"] = run_pool(cells, tmp / "bases-pool")
+        print(f"(b) Pool(2)           {out['pool2_s']:6.1f} s", flush=True)
+        out["sweep2_total_s"], out["sweep2_span_s"], out["sweep2_cell_cpu_s"] = run_sweep_cli(space, tmp / "results", 2)
         print(f"(c) sweep --workers 2 {out['sweep2_total_s']:6.1f} s total, {out['sweep2_span_s']:.1f} s cells", flush=True)
-        out["sweep1_total_s"], out["sweep1_span_s"] = run_sweep_cli(space, tmp / "results", 1)
+        out["sweep1_total_s"], out["sweep1_span_s"], out["sweep1_cell_cpu_s"] = run_sweep_cli(space, tmp / "results", 1)
         print(f"(d) sweep --workers 1 {out['sweep1_total_s']:6.1f} s total, {out['sweep1_span_s']:.1f} s cells", flush=True)
     out["loadavg_after"] = os.getloadavg()
     out["ratio_sweep2_over_pool_total"] = out["sweep2_total_s"] / out["pool2_s"]
@@ -118,6 +118,11 @@ def main() -> int:
     out["speedup_workers2_total"] = out["sweep1_total_s"] / out["sweep2_total_s"]
     out["speedup_workers2_span"] = out["sweep1_span_s"] / out["sweep2_span_s"]
     out["speedup_pool_over_sequential"] = out["sequential_s"] / out["pool2_s"]
+    # Cores the cells actually got (CPU seconds of the cells / wall seconds): 2.0 is an idle
+    # 2-core machine with two workers; far less means other jobs were taking the CPU.
+    out["cores_used_pool2"] = out["pool2_cell_cpu_s"] / out["pool2_s"]
+    out["cores_used_sweep2_span"] = out["sweep2_cell_cpu_s"] / out["sweep2_span_s"]
+    out["cores_used_sequential"] = out["sequential_cell_cpu_s"] / out["sequential_s"]
     print(json.dumps(out, indent=1))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1))
