@@ -14,6 +14,13 @@ last step is a true terminal). The message is differentiable: the listener's pol
 loss flows back through it into the speaker.
 
 Everything is vectorised over environments; the only Python loops run over time steps.
+
+Choices the paper leaves open (measurements in docs/decisions.md, "Particle world"): the target
+is drawn in [-4, 4]² (the ≥ 300 bar is reachable from everywhere there); the reward is paid for
+the position after the move; actions are sampled from the listener's softmax in evaluation as
+in training; the new agents' batch of 8 is 8 staggered envs advanced one step per update
+(8 transitions, 8 messages for the discriminator, as the paper's batches of 8 from a replay
+buffer); the base uses 256 envs.
 """
 
 from __future__ import annotations
@@ -193,7 +200,7 @@ class ParticlesDomain(Domain):
         lambda_paired=1.0, lambda_unpaired=0.1, unpaired_size=4096,
         train_steps=25000, batch_size=8, lr=1e-3,
         disc_hidden=64, disc_layers=1, disc_lr=1e-3,
-        base_train_steps=1500, eval_episodes=1000,
+        base_train_steps=3000, eval_episodes=1000,
     )
     metrics = {
         "mixed": MetricInfo(True, "Eq. 1: mean episode return of the two mixed pairs"),
