@@ -76,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     load_mnist()
     print(f"MNIST load + verify: {time.perf_counter() - t:.2f}s  (peak RSS {peak_rss_mb():.0f} MB)")
     rate = matmul_gflops()
-    print(f"matmul 128x784 @ 784x512, 1 thread: {rate:.1f} GFLOP/s")
+    print(f"matmul 128x784 @ 784x512, 1 thread: {rate:.1f} GFLOP/s (the reference rate below)")
+    print(f"matmul 64x784 @ 784x512: {matmul_gflops(64):.1f} GFLOP/s; 32x784: {matmul_gflops(32):.1f}; "
+          f"10000x784: {matmul_gflops(10_000, reps=5):.1f}")
 
     domain = get_domain("vae")
     spec0 = CellSpec(domain="vae", paired=args.paired, vae_latent_dim=args.latent, base_train_steps=args.base_steps)
