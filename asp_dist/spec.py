@@ -190,11 +190,15 @@ class CellSpec:
         elif purpose in ("data", "init"):
             material = {"base": self.base_fields(), "paired": spec.paired}
         elif purpose in ("train", "eval"):
-            material = spec.to_dict()
+            # Output-only switches must not change what is trained.
+            material = {k: v for k, v in spec.to_dict().items() if k not in OUTPUT_ONLY_FIELDS}
         else:
             raise ValueError(f"unknown seed purpose {purpose!r}")
         return int(stable_hash({"purpose": purpose, "material": material})[:12], 16)
 
+
+# Fields that change what a cell records, never what it trains or how it is evaluated.
+OUTPUT_ONLY_FIELDS = frozenset({"record_figure_data"})
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
 FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}

@@ -68,3 +68,9 @@ def test_from_dict_and_coercion():
         CellSpec.from_dict({"domain": "signaling", "learning_rate": 0.1})
     with pytest.raises(SpecError, match="paired must be of type int"):
         coerce_field("paired", "2.5")
+
+
+def test_recording_figure_data_does_not_change_training():
+    a = CellSpec(domain="signaling", method="asp", paired=2)
+    b = a.replace(record_figure_data=True)
+    assert a.seed_for("train") == b.seed_for("train") and a.seed_for("eval") == b.seed_for("eval")
