@@ -63,8 +63,10 @@ def cell_files(paths: Sequence[str | Path]) -> Inputs:
     sweeps: list[Path] = []
     for raw in paths:
         path = Path(raw)
+        if not path.exists() and (Path("results") / path).is_dir():
+            path = Path("results") / path  # a bare sweep name, as `asp-dist status NAME` takes
         if not path.exists():
-            raise SpecError(f"{path} does not exist; pass a sweep directory such as results/<sweep>")
+            raise SpecError(f"{path} does not exist; pass a sweep name, or a directory such as results/<sweep>")
         if path.is_file():
             if path.suffix != ".parquet":
                 raise SpecError(f"{path} is not a .parquet file")
