@@ -55,8 +55,10 @@ def parse_thresholds(items: Sequence[str]) -> dict[str, float]:
 def output_dir(inputs: Sequence[str], out: str | None) -> Path:
     if out:
         return Path(out)
-    if len(inputs) == 1 and Path(inputs[0]).is_dir():
-        return Path(inputs[0])
+    if len(inputs) == 1:
+        for candidate in (Path(inputs[0]), Path("results") / inputs[0]):  # a directory or a bare sweep name
+            if candidate.is_dir():
+                return candidate
     raise SpecError("several inputs or single files: say where to write the stats with --out DIR")
 
 

@@ -46,6 +46,8 @@ def register(subparsers) -> None:
 def _finish(result) -> int:
     cells = os.path.join(result.sweep_dir, "cells")
     print(f"{result.done}/{result.total} cells done, {result.failed} failed; rows in {cells}")
+    print(f"  stats, figures and report: asp-dist stats {result.sweep_dir}")
+    print(f"  query: asp-dist query {result.sweep_dir} --where \"method = 'asp'\" --columns paired,trial,eval_mixed")
     print(f"  read: python -c \"from asp_dist.store import read_rows; print(read_rows('{result.sweep_dir}'))\"")
     print(f"   or: duckdb -c \"select method, paired, median(eval_mixed) from read_parquet('{cells}/**/*.parquet') "
           f"group by all order by all\"")
