@@ -23,7 +23,8 @@ from asp_dist.bases import train_accepted_base  # noqa: E402
 from asp_dist.cell import Trainer, run_cell  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.methods import method_weights  # noqa: E402
-from asp_dist.spec import CellSpec, coerce_field  # noqa: E402
+from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
 
 
 def peak_rss_mb() -> float:
@@ -46,10 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a CellSpec field")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = coerce_field(key, value)
+    overrides = parse_overrides(args.set)
     spec = CellSpec(domain="levers", paired=args.paired, trial=0, **overrides).resolved()
     domain = get_domain("levers")
     print(f"levers: hidden {spec.levers_hidden}, batch {spec.batch_size}, train_steps {spec.train_steps}, "

@@ -23,7 +23,8 @@ import torch  # noqa: E402
 
 from asp_dist.bases import train_accepted_base  # noqa: E402
 from asp_dist.cell import run_cell  # noqa: E402
-from asp_dist.spec import CellSpec, coerce_field  # noqa: E402
+from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
 
 
 def floats(text: str) -> list[float]:
@@ -40,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    overrides = {k: coerce_field(k, v) for k, _, v in (s.partition("=") for s in args.set)}
+    overrides = parse_overrides(args.set)
 
     configs = [("osp", l0, 0.0) for l0 in floats(args.lambda_paired)]
     configs += [("asp", l0, l1) for l0 in floats(args.lambda_paired) for l1 in floats(args.lambda_unpaired)]

@@ -24,7 +24,8 @@ import torch  # noqa: E402
 
 from asp_dist.bases import train_accepted_base  # noqa: E402
 from asp_dist.cell import run_cell  # noqa: E402
-from asp_dist.spec import CellSpec, coerce_field  # noqa: E402
+from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
 
 
 def parse_range(text: str) -> list[int]:
@@ -56,10 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = coerce_field(key, value)
+    overrides = parse_overrides(args.set)
     specs = [CellSpec(domain=args.domain, method=m, paired=p, trial=t, **overrides).resolved()
              for t in parse_range(args.trials) for p in parse_range(args.paired) for m in args.methods.split(",")]
     out = Path(args.out)
