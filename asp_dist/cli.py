@@ -83,19 +83,11 @@ def cmd_cell(args: argparse.Namespace) -> int:
 
 
 def write_single_row(row: dict[str, Any], out: Path) -> None:
-    """One row to Parquet via a hidden temp file and an atomic rename (the store's schema when present)."""
-    tmp = out.with_name(f".{out.name}.tmp")
-    try:
-        store = importlib.import_module("asp_dist.store")
-        table = store.row_to_table(row)
-    except (ModuleNotFoundError, AttributeError):
-        import pyarrow as pa
+    """One row to a new Parquet file with the sweep store's pinned schema, written atomically."""
+    from asp_dist import store
 
-        table = pa.Table.from_pylist([row])
-    import pyarrow.parquet as pq
-
-    pq.write_table(table, tmp)
-    os.replace(tmp, out)
+    if not store.write_table_once(store.row_table(row), out):
+        raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
 
 
 def cmd_theory(args: argparse.Namespace) -> int:

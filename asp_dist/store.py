@@ -145,10 +145,17 @@ def write_row(sweep_dir: Path, row: dict[str, Any], sweep_id: str) -> bool:
     row = dict(row, sweep_id=sweep_id)
     table = row_table(row)  # validate before touching the disk
     final = cell_path(sweep_dir, row["domain"], row["method"], row["cell_id"])
+    return write_table_once(table, final)
+
+
+def write_table_once(table: pa.Table, final: Path) -> bool:
+    """Write `table` to `final` through a hidden temp file and an atomic link; never overwrites.
+    Returns False (and writes nothing) if `final` already exists."""
+    final = Path(final)
     if final.exists():
         return False
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{row['cell_id']}.", suffix=".tmp", dir=final.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.stem}.", suffix=".tmp", dir=final.parent)
     os.close(fd)
     try:
         pq.write_table(table, tmp)

@@ -21,6 +21,11 @@ def test_cell_prints_row_and_writes_parquet(tmp_path, capsys):
     assert row["method"] == "asp" and row["train_steps"] == 40
     df = pd.read_parquet(out)
     assert len(df) == 1 and df.loc[0, "cell_id"] == row["cell_id"]
+    from asp_dist import store
+    import pyarrow.parquet as pq
+
+    assert pq.read_schema(out).names == store.schema().names  # the sweep store's pinned schema
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp file left
 
 
 def test_existing_output_is_never_overwritten(tmp_path):
