@@ -17,7 +17,6 @@ import json
 import platform
 import socket
 import subprocess
-import sys
 import time
 from collections import defaultdict
 from contextlib import contextmanager

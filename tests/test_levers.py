@@ -15,8 +15,7 @@ from asp_dist.bases import train_accepted_base
 from asp_dist.cell import comparable, run_cell
 from asp_dist.domains import get_domain
 from asp_dist.domains.base import check_domain
-from asp_dist.domains.levers import (AGENTS, CommNet, all_games, communicate, draw_games, init_replay,
-                                     seat_arrangements, team_forward, team_reward)
+from asp_dist.domains.levers import (AGENTS, CommNet, all_games, communicate, draw_games, seat_arrangements, team_forward, team_reward)
 from asp_dist.spec import CellSpec, SpecError
 
 TINY = dict(domain="levers", levers_hidden=8, base_train_steps=30, train_steps=20, batch_size=16,

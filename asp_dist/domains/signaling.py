@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, Tensors, require, seeded
+from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, require, seeded
 from asp_dist.spec import CellSpec
 
 POOL = 4096  # paired states are the first n of a fixed pool, so P(n) is a prefix of P(n+1)

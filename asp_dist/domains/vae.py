@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from asp_dist.data.mnist import PIXELS, load_mnist
-from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, Tensors, require, seeded
+from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, require, seeded
 from asp_dist.spec import CellSpec
 
 FIGURE_LATENT_IMAGES = 1000  # test images whose codes are stored for the d = 2 scatter
