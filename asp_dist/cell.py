@@ -172,7 +172,8 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
         paired = domain.paired(spec, base.agents, spec.paired, data_gen) if spec.paired > 0 else {}
         unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
         agents = domain.new_agents(spec, spec.seed_for("init"))
-        trainer = Trainer(spec, domain, agents, paired, unpaired, weights)
+        trainer = domain.make_trainer(spec, agents, paired, unpaired, weights) \
+            or Trainer(spec, domain, agents, paired, unpaired, weights)
     if restore is not None:
         trainer.load_state_dict(restore["trainer"])
     resumed_from = trainer.step if restore is not None else None

@@ -4,7 +4,8 @@ and (optionally) whole cells at paper settings.
     python bench/bench_particles.py                      # base + per-update times (about a minute)
     python bench/bench_particles.py --cells pc,osp,asp   # also one full cell per method (minutes)
 
-Per-update time is the median over blocks of --updates updates after a warm-up, with the
+Per-update time is given for the fused trainer that cells run (particles_fused.py) and for the
+autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
 paper's batch (8 envs), the full paired set (6) and the ASP discriminator where it applies.
 Peak memory is the process's maximum resident set size (ru_maxrss) after each phase.
 Load on a shared machine inflates every figure: the load average is printed with them.
@@ -35,13 +36,16 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
-def per_update_ms(spec: CellSpec, base, updates: int, blocks: int) -> list[float]:
+def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) -> list[float]:
+    """engine: 'fused' (the domain's hand-derived trainer, what cells run) or 'autograd' (the reference)."""
     domain = get_domain(spec.domain)
     data_gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, data_gen)
     weights = method_weights(spec)
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
-    trainer = Trainer(spec, domain, domain.new_agents(spec, 1), paired, unpaired, weights)
+    agents = domain.new_agents(spec, 1)
+    trainer = (domain.make_trainer(spec, agents, paired, unpaired, weights) if engine == "fused" else None) \
+        or Trainer(spec, domain, agents, paired, unpaired, weights)
     for _ in range(100):  # warm-up
         trainer.train_step()
     times = []
@@ -72,10 +76,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s CPU; "
           f"peak RSS {peak_rss_mib():.0f} MiB")
 
-    for method in ("pc", "osp", "asp"):
+    for method, engine in [(m, e) for m in ("pc", "osp", "asp") for e in ("fused", "autograd")]:
         spec = spec0.replace(method=method).resolved()
-        ms = per_update_ms(spec, base, args.updates, args.blocks)
-        print(f"per-update {method}: median {statistics.median(ms):.3f} ms (blocks {', '.join(f'{m:.3f}' for m in ms)}); "
+        ms = per_update_ms(spec, base, args.updates, args.blocks, engine)
+        print(f"per-update {method} ({engine}): median {statistics.median(ms):.3f} ms (blocks {', '.join(f'{m:.3f}' for m in ms)}); "
               f"x {spec.train_steps} updates = {statistics.median(ms) * spec.train_steps / 1e3:.1f} s; "
               f"peak RSS {peak_rss_mib():.0f} MiB")
 

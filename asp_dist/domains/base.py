@@ -98,6 +98,11 @@ class Domain(ABC):
     def convention_outputs(self, spec: CellSpec, agents: nn.Module, n: int, gen: torch.Generator) -> Tensors:
         """n outputs per channel of the agents on their own input distribution (with grad)."""
 
+    def make_trainer(self, spec: CellSpec, agents: nn.Module, paired: Tensors, unpaired: Tensors, weights: Any) -> Any:
+        """A faster trainer computing the same update as asp_dist.cell.Trainer (e.g. hand-derived
+        gradients), or None to use that generic autograd trainer."""
+        return None
+
     @abstractmethod
     def evaluate(self, spec: CellSpec, base: nn.Module, agents: nn.Module, gen: torch.Generator) -> dict[str, float]:
         """Mixed-team scores (Eq. 1) and their components, self-play of new agents and of the base."""

@@ -275,6 +275,12 @@ class ParticlesDomain(Domain):
         states = sample_steps(agents, n, spec.particles_episode_len, target_for(spec), gen)["state"]
         return {"message": agents.speak(states)}
 
+    def make_trainer(self, spec, agents, paired, unpaired, weights):
+        """Hand-derived gradients (particles_fused.py): the reference path's update, ~4x faster."""
+        from asp_dist.domains.particles_fused import FusedParticleTrainer
+
+        return FusedParticleTrainer(spec, self, agents, paired, unpaired, weights)
+
     # ---- evaluation ---------------------------------------------------------------------------
     @torch.no_grad()
     def evaluate(self, spec, base, agents, gen):
