@@ -494,8 +494,8 @@ def knob_trends(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> l
                     lo_v, hi_v = x.min(), x.max()
                     out.append({"domain": layout.domain, "knob": knob, "fixed": fixed, "a": a, "b": b,
                                 "n_blocks": int(len(diff)), "spearman_rho": float(rho), "p_value": float(p),
-                                f"median_diff_at_min": sign * float(np.median(diff[x == lo_v])),
-                                f"median_diff_at_max": sign * float(np.median(diff[x == hi_v])),
+                                "median_diff_at_min": sign * float(np.median(diff[x == lo_v])),
+                                "median_diff_at_max": sign * float(np.median(diff[x == hi_v])),
                                 "knob_min": float(lo_v), "knob_max": float(hi_v)})
     return out
 

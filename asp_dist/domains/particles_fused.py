@@ -19,6 +19,8 @@ The paired rows ride along with the first rollout step, so each layer sees one b
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
 
@@ -73,6 +75,23 @@ class FusedDiscriminator:
         return dy if input_grad else None
 
 
+class Rollout(NamedTuple):
+    """What the backward pass needs from one update's forward pass. Speaker and listener rows
+    are [step 0's B envs, the n paired rows, steps 1..K-1's envs]; the rest has the K·B env rows."""
+
+    speaker_in: torch.Tensor
+    speaker_hidden: torch.Tensor
+    message: torch.Tensor
+    listener_in: torch.Tensor
+    listener_hidden: torch.Tensor
+    logp: torch.Tensor
+    actions: torch.Tensor
+    values: torch.Tensor
+    returns: torch.Tensor
+    critic_in: torch.Tensor
+    critic_hidden: torch.Tensor
+
+
 class FusedParticleTrainer(Trainer):
     """Trainer with the same construction, checkpoints and loss diagnostics as the generic one,
     whose train_step is the hand-derived update described in the module docstring."""
@@ -123,16 +142,12 @@ class FusedParticleTrainer(Trainer):
             return
 
         # ---- 1. forward: rollout rows (B per step) with the paired rows after step 0's ----------
-        spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp = [], [], [], [], [], []
         if w.needs_self_play:
-            rollout = self.rollout(n)
-            spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp, actions, values, returns, feats, hc = rollout
+            ro = self.rollout(n)
+            x, h, m, li, hl, logp = ro.speaker_in, ro.speaker_hidden, ro.message, ro.listener_in, ro.listener_hidden, ro.logp
         else:
-            h, m = self.speak(self.paired_x)
-            hl, logp = self.listen(self.paired_msg)
-            spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp = [self.paired_x], [h], [m], [self.paired_msg], [hl], [logp]
-        cat = (lambda xs: xs[0] if len(xs) == 1 else torch.cat(xs))
-        x, h, m, li, hl, logp = (cat(v) for v in (spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp))
+            x, li = self.paired_x, self.paired_msg
+            (h, m), (hl, logp) = self.speak(x), self.listen(li)
         probs = logp.exp()
 
         # ---- d(loss)/d(logits) of the listener and d(loss)/d(message) of the speaker --------------
@@ -142,8 +157,8 @@ class FusedParticleTrainer(Trainer):
         p_rows = slice(B, B + n) if N else slice(0, n)
         if N:
             sp_logp, sp_probs = self._rows(logp, sp_rows), self._rows(probs, sp_rows)
-            td = returns - values[:N]
-            onehot = F.one_hot(actions, N_ACTIONS).float()
+            td = ro.returns - ro.values
+            onehot = F.one_hot(ro.actions, N_ACTIONS).float()
             plogp = sp_probs * sp_logp
             # -log π(a)·A (A detached) and the entropy bonus Σ p log p, both per row, over N rows.
             dz_sp = ((sp_probs - onehot) * td.unsqueeze(1)
@@ -178,8 +193,9 @@ class FusedParticleTrainer(Trainer):
         dh = _threshold_backward(linear_backward(_tanh_backward(dm, m), h, self.sw2, self.g_sw2, self.g_sb2), h, 0.0)
         linear_backward(dh, x, self.sw1, self.g_sw1, self.g_sb1, need_input_grad=False)
         if N:  # critic backward
+            hc = ro.critic_hidden
             dhc = _threshold_backward(linear_backward(dv.unsqueeze(1), hc, self.cw2, self.g_cw2, self.g_cb2), hc, 0.0)
-            linear_backward(dhc, feats, self.cw1, self.g_cw1, self.g_cb1, need_input_grad=False)
+            linear_backward(dhc, ro.critic_in, self.cw1, self.g_cw1, self.g_cb1, need_input_grad=False)
 
         # ---- 3. one Adam step ---------------------------------------------------------------------
         self.opt.step()
@@ -189,7 +205,7 @@ class FusedParticleTrainer(Trainer):
             self.record(losses)
         self.step += 1
 
-    def rollout(self, n: int):
+    def rollout(self, n: int) -> "Rollout":
         """particles.a2c_update's rollout and returns, without a graph; the paired rows join step 0."""
         spec, gen = self.spec, self.gen
         T, K, B = spec.particles_episode_len, spec.particles_rollout_len, spec.batch_size
@@ -227,10 +243,10 @@ class FusedParticleTrainer(Trainer):
         for k in reversed(range(K)):
             ret = rews[k] * REWARD_SCALE + spec.particles_gamma * ret.masked_fill(dones[k], 0.0)
             returns.append(ret)
-        returns = returns[0] if K == 1 else torch.cat(returns[::-1])
-        actions = acts[0] if K == 1 else torch.cat(acts)
-        # The critic's hidden units of the bootstrap rows get no gradient: keep the visited rows only.
-        return spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp, actions, values, returns, feats[:K * B], hc[:K * B]
+        cat = (lambda xs: xs[0] if len(xs) == 1 else torch.cat(xs))
+        # The bootstrap rows of the critic get no gradient: keep the visited rows only.
+        return Rollout(cat(spk_x), cat(spk_h), cat(spk_m), cat(lis_in), cat(lis_h), cat(lis_logp), cat(acts),
+                       values[:K * B], cat(returns[::-1]), feats[:K * B], hc[:K * B])
 
     def adversarial_grad(self, real: torch.Tensor, fake: torch.Tensor, losses: dict | None) -> torch.Tensor:
         """One BCE step of the discriminator (real = 1, fake = 0), then λ1·d(L_u)/d(fake) through
