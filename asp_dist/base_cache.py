@@ -6,22 +6,48 @@ asking at the same time blocks on the lock, then finds the file and loads it. Th
 through an atomic rename, so a reader never sees half a base, and a crash while training leaves
 only a stale temp file (the lock dies with its process). Works on one machine and on a shared
 filesystem with POSIX locks (local disk, NFSv4).
+
+A base that no attempt could train to the domain's bar is remembered too, as
+``<base_key>.rejected.json``: every other cell of that trial then fails at once with the same
+BaseRejected message instead of repeating all attempts (21 cells x 5 attempts for one
+particle trial). Delete the file, or change base_train_steps / base_max_attempts (a new
+base_key), to try again.
 """
 
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import tempfile
 from pathlib import Path
 
-from asp_dist.bases import BaseModel, base_from_bytes, base_to_bytes, train_accepted_base
+from asp_dist.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.domains.base import Progress
 from asp_dist.spec import CellSpec
 
 
 def base_path(cache_dir: Path, base_key: str) -> Path:
     return Path(cache_dir) / f"{base_key}.pt"
+
+
+def rejected_path(cache_dir: Path, base_key: str) -> Path:
+    return Path(cache_dir) / f"{base_key}.rejected.json"
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _raise_if_rejected(cache_dir: Path, base_key: str) -> None:
+    path = rejected_path(cache_dir, base_key)
+    if path.exists():
+        raise BaseRejected(json.loads(path.read_text())["error"] + f" [remembered in {path}]")
 
 
 def _load(path: Path, spec: CellSpec) -> BaseModel:
@@ -38,19 +64,20 @@ def get_base(spec: CellSpec, cache_dir: Path, progress: Progress | None = None) 
     path = base_path(cache_dir, spec.base_key)
     if path.exists():
         return _load(path, spec), True
+    _raise_if_rejected(cache_dir, spec.base_key)
     cache_dir.mkdir(parents=True, exist_ok=True)
     with open(cache_dir / f".{spec.base_key}.lock", "a+") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # waits while another cell trains this base
         try:
             if path.exists():
                 return _load(path, spec), True
-            base = train_accepted_base(spec, progress)
-            fd, tmp = tempfile.mkstemp(prefix=f".{spec.base_key}.", suffix=".tmp", dir=cache_dir)
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(base_to_bytes(base))
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
+            _raise_if_rejected(cache_dir, spec.base_key)  # decided while we waited for the lock
+            try:
+                base = train_accepted_base(spec, progress)
+            except BaseRejected as err:
+                _write_atomic(rejected_path(cache_dir, spec.base_key), json.dumps({"error": str(err)}).encode())
+                raise
+            _write_atomic(path, base_to_bytes(base))
             return base, False
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)

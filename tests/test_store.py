@@ -163,3 +163,22 @@ def test_pinned_schema_file_roundtrip(tmp_path, rows):
     store.write_row(tmp_path, rows[1], sweep_id="s")
     path = store.cell_path(tmp_path, rows[1]["domain"], rows[1]["method"], rows[1]["cell_id"])
     assert pq.read_schema(path).remove_metadata() == store.schema()
+
+
+def test_rejected_base_is_remembered_for_the_other_cells_of_its_trial(tmp_path, monkeypatch):
+    import asp_dist.base_cache as cache
+    from asp_dist.bases import BaseRejected
+
+    calls = []
+    original = cache.train_accepted_base
+    monkeypatch.setattr(cache, "train_accepted_base", lambda spec, progress=None: calls.append(1) or original(spec))
+    unreachable = dict(domain="particles", trial=2, base_train_steps=2, particles_base_envs=8, eval_episodes=8,
+                       base_max_attempts=2, particles_accept_return=1e9)
+    with pytest.raises(BaseRejected, match="no attempt of 2"):
+        get_base(CellSpec(method="asp", **unreachable), tmp_path)
+    assert cache.rejected_path(tmp_path, CellSpec(**unreachable).base_key).exists()
+    with pytest.raises(BaseRejected, match="remembered in"):  # another cell of the trial: no retraining
+        get_base(CellSpec(method="pc", paired=3, **unreachable), tmp_path)
+    assert len(calls) == 1
+    base, cached = get_base(CellSpec(**{**unreachable, "particles_accept_return": 0.0}), tmp_path)  # other key
+    assert not cached and base.score >= 0.0 and len(calls) == 2
