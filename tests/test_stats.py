@@ -371,7 +371,7 @@ def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
                 for col in ("domain", "method"):  # the store keeps these dictionary-encoded
                     table = table.set_column(table.schema.get_field_index(col), col,
                                              table.column(col).dictionary_encode())
-                d = sweep / "cells" / f"domain=signaling" / f"method={method}"
+                d = sweep / "cells" / "domain=signaling" / f"method={method}"
                 d.mkdir(parents=True, exist_ok=True)
                 pq.write_table(table, d / f"{row['cell_id']}.parquet")
                 ids.append(row["cell_id"])
