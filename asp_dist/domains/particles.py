@@ -14,6 +14,9 @@ last step is a true terminal). The message is differentiable: the listener's pol
 loss flows back through it into the speaker.
 
 Everything is vectorised over environments; the only Python loops run over time steps.
+The new agents train with hand-derived gradients (particles_fused.py); the autograd functions
+here (a2c_update, paired_loss) are the reference that trainer is tested against, and train
+the base.
 
 Choices the paper leaves open (measurements in docs/decisions.md, "Particle world"): the target
 is drawn in [-4, 4]² (the ≥ 300 bar is reachable from everywhere there); the reward is paid for
@@ -276,7 +279,7 @@ class ParticlesDomain(Domain):
         return {"message": agents.speak(states)}
 
     def make_trainer(self, spec, agents, paired, unpaired, weights):
-        """Hand-derived gradients (particles_fused.py): the reference path's update, ~4x faster."""
+        """Hand-derived gradients (particles_fused.py): the reference path's update, 2.4-3.3x faster."""
         from asp_dist.domains.particles_fused import FusedParticleTrainer
 
         return FusedParticleTrainer(spec, self, agents, paired, unpaired, weights)
