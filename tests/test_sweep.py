@@ -112,7 +112,7 @@ def test_smoke_sweep_end_to_end(tmp_path):
 def test_sigkill_of_driver_then_resume(tmp_path):
     grid = space(tmp_path, """
 [[grid]]
-fixed = { train_steps = 700, unpaired_size = 256 }
+fixed = { train_steps = 4000, unpaired_size = 256 }
 axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial = [0, 1] }
 """)
     specs = expand(grid)
@@ -124,7 +124,9 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
         deadline = time.monotonic() + 300
         while not parquet_files(results / "k") and time.monotonic() < deadline and driver.poll() is None:
             time.sleep(0.2)
-        time.sleep(1.0)  # let the next cells start and checkpoint
+        # Cells last ~4 s on a fast core: 1.5 s after the first row, the next cells are mid-run and
+        # have checkpointed (every 0.3 s). Shorter cells made this flaky on faster machines.
+        time.sleep(1.5)
         assert driver.poll() is None, "the sweep finished before it could be interrupted"
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
