@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import time
 
@@ -19,16 +18,13 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from _common import peak_rss_mib  # noqa: E402
 from asp_dist.bases import train_accepted_base  # noqa: E402
 from asp_dist.cell import Trainer, run_cell  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.methods import method_weights  # noqa: E402
 from asp_dist.cli import parse_overrides  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 class Clock:
@@ -77,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             row = run_cell(spec.replace(method=method), base=base)
         print(f"{method:>3} cell: {c.wall:.2f}s wall, {c.cpu:.2f}s CPU (train {row['time_train_wall_s']:.2f}s, "
               f"eval {row['time_eval_wall_s']:.3f}s wall); mixed error {row['eval_mixed']:.4f}")
-    print(f"peak RSS {peak_rss_mb():.0f} MB")
+    print(f"peak RSS {peak_rss_mib():.0f} MiB")
     return 0
 
 

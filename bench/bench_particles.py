@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import resource
 import statistics
 import sys
 import time
@@ -25,15 +24,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from _common import cell_timing, peak_rss_mib  # noqa: E402
 from asp_dist.bases import train_accepted_base  # noqa: E402
 from asp_dist.cell import Trainer, run_cell  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.methods import method_weights  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
-
-
-def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
 def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) -> list[float]:
@@ -86,9 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     for method in filter(None, args.cells.split(",")):
         spec = spec0.replace(method=method)
         row = run_cell(spec, base=base)
-        print(f"cell {method}: train {row['time_train_wall_s']:.1f} s, eval {row['time_eval_wall_s']:.1f} s, "
-              f"data {row['time_data_wall_s']:.1f} s, total (base shared) {row['time_total_wall_s']:.1f} s wall / "
-              f"{row['time_total_cpu_s']:.1f} s CPU; mixed {row['eval_mixed']:.1f}; peak RSS {peak_rss_mib():.0f} MiB")
+        print(f"cell {method} (base shared): {cell_timing(row)}; mixed {row['eval_mixed']:.1f}; "
+              f"peak RSS {peak_rss_mib():.0f} MiB")
     print(f"# load average {os.getloadavg()[0]:.2f} at end")
     return 0
 

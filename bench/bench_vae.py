@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import sys
 import time
 
@@ -20,6 +19,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from _common import cell_timing, peak_rss_mib  # noqa: E402
 from asp_dist.bases import BaseModel  # noqa: E402
 from asp_dist.cell import Trainer, run_cell  # noqa: E402
 from asp_dist.data.mnist import PIXELS, load_mnist  # noqa: E402
@@ -58,10 +58,6 @@ def update_flops(spec: CellSpec) -> float:
     return flops
 
 
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--updates", type=int, default=200)
@@ -74,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
 
     t = time.perf_counter()
     load_mnist()
-    print(f"MNIST load + verify: {time.perf_counter() - t:.2f}s  (peak RSS {peak_rss_mb():.0f} MB)")
+    print(f"MNIST load + verify: {time.perf_counter() - t:.2f}s  (peak RSS {peak_rss_mib():.0f} MiB)")
     rate = matmul_gflops()
     print(f"matmul 128x784 @ 784x512, 1 thread: {rate:.1f} GFLOP/s (the reference rate below)")
     print(f"matmul 64x784 @ 784x512: {matmul_gflops(64):.1f} GFLOP/s; 32x784: {matmul_gflops(32):.1f}; "
@@ -115,10 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         for method in ("pc", "osp", "asp"):
             spec = spec0.replace(method=method)
             row = run_cell(spec, base=base)
-            print(f"{method:4s} cell: train {row['time_train_wall_s']:.1f}s, eval {row['time_eval_wall_s']:.2f}s, "
-                  f"data {row['time_data_wall_s']:.2f}s, total {row['time_total_wall_s']:.1f}s wall / "
-                  f"{row['time_total_cpu_s']:.1f}s CPU")
-    print(f"peak RSS: {peak_rss_mb():.0f} MB")
+            print(f"{method:4s} cell: {cell_timing(row)}")
+    print(f"peak RSS: {peak_rss_mib():.0f} MiB")
     return 0
 
 
