@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import fcntl
 import json
-import os
-import tempfile
 from pathlib import Path
 
 from asp_dist.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.domains.base import Progress
 from asp_dist.spec import CellSpec
+from asp_dist.store import atomic_write
 
 
 def base_path(cache_dir: Path, base_key: str) -> Path:
@@ -33,15 +32,6 @@ def base_path(cache_dir: Path, base_key: str) -> Path:
 
 def rejected_path(cache_dir: Path, base_key: str) -> Path:
     return Path(cache_dir) / f"{base_key}.rejected.json"
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _raise_if_rejected(cache_dir: Path, base_key: str) -> None:
@@ -75,9 +65,9 @@ def get_base(spec: CellSpec, cache_dir: Path, progress: Progress | None = None) 
             try:
                 base = train_accepted_base(spec, progress)
             except BaseRejected as err:
-                _write_atomic(rejected_path(cache_dir, spec.base_key), json.dumps({"error": str(err)}).encode())
+                atomic_write(rejected_path(cache_dir, spec.base_key), json.dumps({"error": str(err)}))
                 raise
-            _write_atomic(path, base_to_bytes(base))
+            atomic_write(path, base_to_bytes(base))
             return base, False
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)

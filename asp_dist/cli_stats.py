@@ -56,9 +56,11 @@ def output_dir(inputs: Sequence[str], out: str | None) -> Path:
     if out:
         return Path(out)
     if len(inputs) == 1:
-        for candidate in (Path(inputs[0]), Path("results") / inputs[0]):  # a directory or a bare sweep name
-            if candidate.is_dir():
-                return candidate
+        from asp_dist.query import locate_sweep
+
+        candidate = locate_sweep(inputs[0])  # a directory or a bare sweep name
+        if candidate.is_dir():
+            return candidate
     raise SpecError("several inputs or single files: say where to write the stats with --out DIR")
 
 

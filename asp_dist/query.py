@@ -55,6 +55,14 @@ def _visible(path: Path, root: Path) -> bool:
     return not any(p.startswith((".", "_")) for p in parts)
 
 
+def locate_sweep(name_or_path: str | Path) -> Path:
+    """A path as given, or results/<name> for a bare sweep name (as `asp-dist status NAME` takes)."""
+    path = Path(name_or_path)
+    if not path.exists() and (Path("results") / path).is_dir():
+        return Path("results") / path
+    return path
+
+
 def cell_files(paths: Sequence[str | Path]) -> Inputs:
     """List the result files behind the given sweep directories, directories or files."""
     if not paths:
@@ -62,9 +70,7 @@ def cell_files(paths: Sequence[str | Path]) -> Inputs:
     files: list[Path] = []
     sweeps: list[Path] = []
     for raw in paths:
-        path = Path(raw)
-        if not path.exists() and (Path("results") / path).is_dir():
-            path = Path("results") / path  # a bare sweep name, as `asp-dist status NAME` takes
+        path = locate_sweep(raw)
         if not path.exists():
             raise SpecError(f"{path} does not exist; pass a sweep name, or a directory such as results/<sweep>")
         if path.is_file():

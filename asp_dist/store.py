@@ -175,11 +175,16 @@ def write_table_once(table: pa.Table, final: Path) -> bool:
             os.unlink(tmp)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def atomic_write(path: Path, data: bytes | str) -> None:
+    """Replace `path` with `data` through a hidden temp file, fsync and rename: readers see the
+    old file or the new one, never half of it."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data.encode() if isinstance(data, str) else data)
+        fh.flush()
+        os.fsync(fh.fileno())
     os.replace(tmp, path)
 
 
@@ -190,7 +195,7 @@ def record_failure(sweep_dir: Path, cell_id: str, domain: str, method: str, erro
     info = {"cell_id": cell_id, "domain": domain, "method": method, "error": error[-4000:],
             "failed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "times_failed": int(previous.get("times_failed", 0)) + 1}
-    _atomic_write_text(path, json.dumps(info, indent=1))
+    atomic_write(path, json.dumps(info, indent=1))
 
 
 def clear_failure(sweep_dir: Path, cell_id: str) -> None:
@@ -208,7 +213,7 @@ def failed_cells(sweep_dir: Path) -> dict[str, dict[str, Any]]:
 
 # ---- manifest ----------------------------------------------------------------------------------
 def write_manifest(sweep_dir: Path, manifest: dict[str, Any]) -> None:
-    _atomic_write_text(Path(sweep_dir) / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True))
+    atomic_write(Path(sweep_dir) / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True))
 
 
 def read_manifest(sweep_dir: Path) -> dict[str, Any] | None:
