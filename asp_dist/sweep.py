@@ -313,10 +313,7 @@ def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bo
     else:
         number = 1
     experiment = f"run-{number}"
-    tune_root.mkdir(parents=True, exist_ok=True)
-    tmp = current_path.with_name("." + TUNE_CURRENT + ".tmp")
-    tmp.write_text(json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
-    os.replace(tmp, current_path)
+    store.atomic_write(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
     return experiment, False
 
 
