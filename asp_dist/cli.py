@@ -58,7 +58,7 @@ class StderrProgress:
 def cmd_cell(args: argparse.Namespace) -> int:
     import torch
 
-    from asp_dist.cell import run_cell
+    from asp_dist.training.cell import run_cell
 
     torch.set_num_threads(args.threads)
     spec = CellSpec(domain=args.domain, method=args.method, paired=args.paired, trial=args.trial,
@@ -84,14 +84,15 @@ def cmd_cell(args: argparse.Namespace) -> int:
 
 def write_single_row(row: dict[str, Any], out: Path) -> None:
     """One row to a new Parquet file with the sweep store's pinned schema, written atomically."""
-    from asp_dist import store
+    from asp_dist.fsutil import write_table_once
+    from asp_dist.training.row import row_table
 
-    if not store.write_table_once(store.row_table(row), out):
+    if not write_table_once(row_table(row), out):
         raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
 
 
 def cmd_theory(args: argparse.Namespace) -> int:
-    from asp_dist import theory
+    from asp_dist.analysis import theory
 
     if args.probs and args.skew is not None:
         raise SpecError("give either --probs or --skew, not both")

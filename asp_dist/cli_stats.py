@@ -18,7 +18,7 @@ from asp_dist.spec import SpecError
 
 
 def parse_ranges(items: Sequence[str]) -> dict[str, tuple[int, int] | None]:
-    from asp_dist.stats import PAPER_PAIRED_RANGES
+    from asp_dist.analysis.stats import PAPER_PAIRED_RANGES
 
     ranges: dict[str, tuple[int, int] | None] = dict(PAPER_PAIRED_RANGES)
     for item in items or ():
@@ -56,7 +56,7 @@ def output_dir(inputs: Sequence[str], out: str | None) -> Path:
     if out:
         return Path(out)
     if len(inputs) == 1:
-        from asp_dist.query import locate_sweep
+        from asp_dist.results.query import locate_sweep
 
         candidate = locate_sweep(inputs[0])  # a directory or a bare sweep name
         if candidate.is_dir():
@@ -67,11 +67,10 @@ def output_dir(inputs: Sequence[str], out: str | None) -> Path:
 def run_job(inputs: Sequence[str], out: str | None = None, cfg=None, figures: bool = True, command: str = "",
             log=print) -> Path:
     """The whole job: read rows, compute tables, write stats/, figures/ and report.md. Returns report.md."""
-    from asp_dist.plots import plot_all
-    from asp_dist.report import write_report
-    from asp_dist.stats import run_stats, write_tables
-
-    from asp_dist.query import cell_files
+    from asp_dist.analysis.plots import plot_all
+    from asp_dist.analysis.report import write_report
+    from asp_dist.analysis.stats import run_stats, write_tables
+    from asp_dist.results.query import cell_files
 
     cell_files(inputs)  # a missing or empty input is the first thing to report
     out_dir = output_dir(inputs, out)
@@ -92,7 +91,7 @@ def run_job(inputs: Sequence[str], out: str | None = None, cfg=None, figures: bo
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    from asp_dist.stats import StatsConfig
+    from asp_dist.analysis.stats import StatsConfig
 
     if args.bootstrap < 100:
         raise SpecError("--bootstrap must be at least 100 resamples")
@@ -108,7 +107,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    from asp_dist.query import run_query, write_result
+    from asp_dist.results.query import run_query, write_result
 
     columns = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
     df = run_query(args.sweeps, where=args.where, columns=columns, sql=args.sql, limit=args.limit)

@@ -48,7 +48,7 @@ def _finish(result) -> int:
     print(f"{result.done}/{result.total} cells done, {result.failed} failed; rows in {cells}")
     print(f"  stats, figures and report: asp-dist stats {result.sweep_dir}")
     print(f"  query: asp-dist query {result.sweep_dir} --where \"method = 'asp'\" --columns paired,trial,eval_mixed")
-    print(f"  read: python -c \"from asp_dist.store import read_rows; print(read_rows('{result.sweep_dir}'))\"")
+    print(f"  read: python -c \"from asp_dist.results.store import read_rows; print(read_rows('{result.sweep_dir}'))\"")
     print(f"   or: duckdb -c \"select method, paired, median(eval_mixed) from read_parquet('{cells}/**/*.parquet') "
           f"group by all order by all\"")
     if result.failed:
@@ -62,18 +62,18 @@ def _run_kwargs(args) -> dict:
 
 
 def cmd_sweep(args) -> int:
-    from asp_dist.spaces import expand
+    from asp_dist.sweep.spaces import expand
     expand(args.space)  # reject a bad space before paying for the Ray import
-    from asp_dist.sweep import run_sweep
+    from asp_dist.sweep.tune import run_sweep
     return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
 
 
 def cmd_resume(args) -> int:
-    from asp_dist.sweep import resume_sweep
+    from asp_dist.sweep.tune import resume_sweep
     return _finish(resume_sweep(args.name, **_run_kwargs(args)))
 
 
 def cmd_status(args) -> int:
-    from asp_dist.sweep import sweep_status
+    from asp_dist.sweep.tune import sweep_status
     print(sweep_status(args.name, args.results))
     return 0

@@ -11,17 +11,17 @@ one flat, pinned schema serves every domain: a particle row simply has ``vae_*``
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field, fields
 from typing import Any, get_type_hints
 
+from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.errors import SpecError
+from asp_dist.hashing import stable_hash
+
+__all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", "coerce_field", "field_type"]
+
 METHODS = ("pc", "osp", "asp")
 ADVERSARY_LOSSES = ("neg_bce", "non_saturating")
-
-
-class SpecError(ValueError):
-    """A cell spec that cannot run; the message says which field and how to fix it."""
 
 
 def knob(default: Any = None, doc: str = "") -> Any:
@@ -109,8 +109,6 @@ class CellSpec:
 
     def resolved(self) -> "CellSpec":
         """Fill every None knob with the domain's default and validate the result."""
-        from asp_dist.domains import get_domain
-
         self.validate_identity()
         domain = get_domain(self.domain)
         filled = {k: v for k, v in domain.defaults.items() if getattr(self, k) is None}
@@ -125,8 +123,6 @@ class CellSpec:
 
     # ---- validation --------------------------------------------------------------------------
     def validate_identity(self) -> None:
-        from asp_dist.domains import DOMAINS
-
         if self.domain not in DOMAINS:
             raise SpecError(f"unknown domain {self.domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
         if self.method not in METHODS:
@@ -139,8 +135,6 @@ class CellSpec:
                 raise SpecError(f"{name} must be an integer >= 0, got {value!r}")
 
     def validate_resolved(self) -> None:
-        from asp_dist.domains import get_domain
-
         for f in fields(self):
             value = getattr(self, f.name)
             if value is None:
@@ -243,8 +237,3 @@ def coerce_field(name: str, value: Any) -> Any:
         return str(value)
     except (TypeError, ValueError):
         raise SpecError(f"{name} must be of type {t.__name__}, got {value!r}") from None
-
-
-def stable_hash(obj: Any) -> str:
-    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(text.encode()).hexdigest()

@@ -33,9 +33,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
-from asp_dist.base_cache import get_base  # noqa: E402
-from asp_dist.cell import run_cell  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
+from asp_dist.sweep.base_cache import get_base  # noqa: E402
+from asp_dist.training.cell import run_cell  # noqa: E402
 
 METHODS = ("osp", "asp")
 PAIRED = (0, 2, 4, 8, 16)
@@ -80,7 +80,7 @@ def run_sweep_cli(space: Path, results: Path, workers: int) -> tuple[float, floa
                     "--results", str(results), "--workers", str(workers)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     total = time.perf_counter() - t
-    from asp_dist.store import read_rows
+    from asp_dist.results.store import read_rows
 
     df = read_rows(results / f"w{workers}")
     files = sorted((results / f"w{workers}" / "cells").glob("domain=*/method=*/*.parquet"))

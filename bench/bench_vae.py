@@ -18,14 +18,15 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
-
 from _common import cell_timing, peak_rss_mib  # noqa: E402
-from asp_dist.bases import BaseModel  # noqa: E402
-from asp_dist.cell import Trainer, run_cell  # noqa: E402
+
 from asp_dist.data.mnist import PIXELS, load_mnist  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
-from asp_dist.methods import method_weights  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
+from asp_dist.training.bases import BaseModel  # noqa: E402
+from asp_dist.training.cell import run_cell  # noqa: E402
+from asp_dist.training.methods import method_weights  # noqa: E402
+from asp_dist.training.trainer import Trainer  # noqa: E402
 
 
 def matmul_gflops(m: int = 128, k: int = 784, n: int = 512, reps: int = 300) -> float:

@@ -6,9 +6,10 @@ import json
 import pytest
 import torch
 
-from asp_dist.bases import base_from_bytes, base_to_bytes, train_accepted_base
-from asp_dist.cell import VOLATILE_COLUMNS, comparable, run_cell
 from asp_dist.spec import FIELD_NAMES
+from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
+from asp_dist.training.cell import run_cell
+from asp_dist.training.row import VOLATILE_COLUMNS, comparable
 
 
 @pytest.mark.parametrize("method", ["pc", "osp", "asp"])

@@ -6,6 +6,7 @@ import pandas as pd
 import pytest
 
 from asp_dist.cli import main
+from asp_dist.training.row import schema as row_schema
 
 
 def run(*args):
@@ -21,10 +22,10 @@ def test_cell_prints_row_and_writes_parquet(tmp_path, capsys):
     assert row["method"] == "asp" and row["train_steps"] == 40
     df = pd.read_parquet(out)
     assert len(df) == 1 and df.loc[0, "cell_id"] == row["cell_id"]
-    from asp_dist import store
     import pyarrow.parquet as pq
 
-    assert pq.read_schema(out).names == store.schema().names  # the sweep store's pinned schema
+
+    assert pq.read_schema(out).names == row_schema().names  # the sweep store's pinned schema
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp file left
 
 

@@ -2,14 +2,12 @@
 tests/golden/rows.parquet (recorded before the package was restructured). Columns added since
 must be spec knobs at their neutral value, so old rows stay what new code would write."""
 
-from pathlib import Path
-
 import math
+from pathlib import Path
 
 import pandas as pd
 import pytest
 import torch
-
 from golden.record import run_golden_rows
 
 RECORDED = pd.read_parquet(Path(__file__).parent / "golden" / "rows.parquet")

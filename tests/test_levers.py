@@ -11,12 +11,22 @@ import json
 import pytest
 import torch
 
-from asp_dist.bases import train_accepted_base
-from asp_dist.cell import comparable, run_cell
 from asp_dist.domains import get_domain
-from asp_dist.domains.base import check_domain
-from asp_dist.domains.levers import (AGENTS, CommNet, all_games, communicate, draw_games, seat_arrangements, team_forward, team_reward)
+from asp_dist.domains.contract import check_domain
+from asp_dist.domains.levers import (
+    AGENTS,
+    CommNet,
+    all_games,
+    communicate,
+    draw_games,
+    seat_arrangements,
+    team_forward,
+    team_reward,
+)
 from asp_dist.spec import CellSpec, SpecError
+from asp_dist.training.bases import train_accepted_base
+from asp_dist.training.cell import run_cell
+from asp_dist.training.row import comparable
 
 TINY = dict(domain="levers", levers_hidden=8, base_train_steps=30, train_steps=20, batch_size=16,
             levers_replay_size=64, unpaired_size=60, disc_hidden=8, eval_episodes=120, levers_accept_reward=0.0)

@@ -2,10 +2,10 @@
 
 import torch
 
-from asp_dist.cell import Trainer
 from asp_dist.domains import get_domain
-from asp_dist.methods import compose_loss, method_weights
 from asp_dist.spec import CellSpec
+from asp_dist.training.methods import compose_loss, method_weights
+from asp_dist.training.trainer import Trainer
 
 
 def terms():
@@ -60,7 +60,7 @@ class Spy:
 def make_trainer(method, **changes):
     spec = CellSpec(domain="signaling", method=method, paired=3, trial=0, train_steps=5, **changes).resolved()
     spy = Spy(get_domain("signaling"))
-    from asp_dist.bases import train_accepted_base
+    from asp_dist.training.bases import train_accepted_base
 
     base = train_accepted_base(spec)
     gen = torch.Generator().manual_seed(0)

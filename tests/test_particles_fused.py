@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from asp_dist.cell import Trainer
 from asp_dist.domains import get_domain
-from asp_dist.domains.particles_fused import FusedParticleTrainer
-from asp_dist.flat_adam import FlatAdam
-from asp_dist.methods import method_weights
 from asp_dist.spec import CellSpec
+from asp_dist.training.fast.flat_adam import FlatAdam
+from asp_dist.training.fast.particles import FusedParticleTrainer
+from asp_dist.training.methods import method_weights
+from asp_dist.training.trainer import Trainer
 
 SMALL = dict(domain="particles", particles_hidden=16, particles_message_dim=12, unpaired_size=64)
 

@@ -6,11 +6,11 @@ import json
 
 import numpy as np
 import pandas as pd
-
-from asp_dist.cli_stats import main, run_job
-from asp_dist.plots import plot_all
-from asp_dist.stats import StatsConfig, compute
 from test_stats import make_rows, write_sweep
+
+from asp_dist.analysis.plots import plot_all
+from asp_dist.analysis.stats import StatsConfig, compute
+from asp_dist.cli_stats import main, run_job
 
 
 def _nonempty(paths):

@@ -9,11 +9,11 @@ from contextlib import redirect_stdout
 import pandas as pd
 import pyarrow.dataset as ds
 import pytest
+from test_stats import make_rows, write_sweep
 
 from asp_dist.cli_stats import main
-from asp_dist.query import cell_files, open_inputs, run_query, write_result
+from asp_dist.results.query import cell_files, open_inputs, run_query, write_result
 from asp_dist.spec import SpecError
-from test_stats import make_rows, write_sweep
 
 
 @pytest.fixture

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.base import check_domain
+from asp_dist.domains.contract import check_domain
 from asp_dist.domains.signaling import class_sizes, state_classes
 from asp_dist.spec import CellSpec
 
@@ -36,7 +36,7 @@ def test_base_is_a_perfect_bijection_and_varies_with_trial():
 def test_adversary_resolves_a_skewed_convention_without_paired_data():
     """The analysis' claim in miniature: with distinct class sizes, matching the token
     marginal identifies the convention; with a uniform distribution it cannot."""
-    from asp_dist.cell import run_cell
+    from asp_dist.training.cell import run_cell
 
     def median_mixed(method, skew):
         scores = sorted(run_cell(CellSpec(domain="signaling", method=method, paired=0, trial=t,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from asp_dist import spaces
-from asp_dist.spaces import SweepError, expand, grid_hash, load_space
-from asp_dist.domains import available_domains
+from asp_dist.errors import SweepError
 from asp_dist.spec import SpecError
+from asp_dist.sweep import spaces
+from asp_dist.sweep.spaces import expand, grid_hash, load_space
 
 
 def test_named_spaces_exist():
@@ -38,8 +38,7 @@ def test_paper_vae_grids():
 
 def test_paper_includes_every_paper_space():
     assert len(load_space("paper")) == sum(len(load_space(n)) for n in ("paper-particles", "paper-vae", "paper-levers"))
-    if {"particles", "vae", "levers"} <= set(available_domains()):
-        assert len(expand("paper")) == 630 + 420 + 420
+    assert len(expand("paper")) == 630 + 420 + 420
 
 
 def test_smoke_expands_to_resolved_unique_cells_in_base_order():
@@ -133,14 +132,3 @@ def test_unknown_space_names_the_known_ones():
         expand("nope")
     with pytest.raises(SweepError, match="does not exist"):
         expand("/no/such/space.toml")
-
-
-def test_domain_not_implemented_yet_is_rejected_clearly(monkeypatch):
-    import asp_dist.domains as domains
-
-    monkeypatch.setattr(domains, "available_domains", lambda: ["signaling"])
-    with pytest.raises(SweepError, match="needs domain\\(s\\) levers, not implemented yet.*available: signaling"):
-        expand("paper-levers")
-    with pytest.raises(SweepError, match="particles, vae"):
-        expand("paper")
-    assert len(expand("smoke")) == 18

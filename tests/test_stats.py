@@ -15,10 +15,20 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from asp_dist.query import SchemaMismatch, load_rows, open_inputs
+from asp_dist.analysis.stats import (
+    StatsConfig,
+    bootstrap_median_ci,
+    compute,
+    friedman,
+    holm,
+    nemenyi,
+    quartiles,
+    run_stats,
+    wilcoxon,
+    write_tables,
+)
+from asp_dist.results.query import SchemaMismatch, load_rows, open_inputs
 from asp_dist.spec import SpecError
-from asp_dist.stats import (StatsConfig, bootstrap_median_ci, compute, friedman, holm, nemenyi, quartiles,
-                            run_stats, wilcoxon, write_tables)
 
 EFFECT = {"pc": 0.0, "osp": 0.5, "asp": 1.0}
 
@@ -354,9 +364,9 @@ def test_missing_metric_column_is_a_clear_error():
 
 def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
     """Rows from run_cell itself (tiny signaling cells), stored as the sweep service stores them."""
-    from asp_dist.cell import run_cell
     from asp_dist.cli_stats import run_job
     from asp_dist.spec import CellSpec
+    from asp_dist.training.cell import run_cell
 
     sweep = tmp_path / "real"
     ids = []

@@ -13,11 +13,14 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 
-from asp_dist import store
-from asp_dist.base_cache import base_path, get_base
-from asp_dist.cell import run_cell
-from asp_dist.domains import DOMAINS, available_domains, get_domain
+from asp_dist.domains import DOMAINS
+from asp_dist.errors import SchemaError
+from asp_dist.results import store
 from asp_dist.spec import FIELD_NAMES, CellSpec
+from asp_dist.sweep.base_cache import base_path, get_base
+from asp_dist.training.cell import run_cell
+from asp_dist.training.row import row_table
+from asp_dist.training.row import schema as row_schema
 
 
 @pytest.fixture(scope="module")
@@ -32,10 +35,10 @@ def rows():
 
 
 def test_schema_pins_spec_metric_and_cell_columns(rows):
-    sch = store.schema()
+    sch = row_schema()
     assert set(FIELD_NAMES) <= set(sch.names)
-    for domain in available_domains():
-        for metric in get_domain(domain).metrics:
+    for domain in DOMAINS.values():
+        for metric in domain.metrics:
             assert sch.field(f"eval_{metric}").type == pa.float64()
     assert sch.field("paired").type == pa.int64()
     assert sch.field("lr").type == pa.float64()
@@ -45,16 +48,15 @@ def test_schema_pins_spec_metric_and_cell_columns(rows):
         assert col in sch.names
     # Every column run_cell writes is pinned: a new column in cell.py fails here first.
     assert set(rows[0]) <= set(sch.names)
-    assert len(DOMAINS) >= 1
 
 
 def test_unknown_column_is_an_error_and_missing_is_null(rows):
-    with pytest.raises(store.SchemaError, match="not_a_column"):
-        store.row_table(dict(rows[0], not_a_column=1))
+    with pytest.raises(SchemaError, match="not_a_column"):
+        row_table(dict(rows[0], not_a_column=1))
     partial = {k: v for k, v in rows[0].items() if k != "loss_disc"}
-    table = store.row_table(partial)
+    table = row_table(partial)
     assert table.column("loss_disc").to_pylist() == [None]
-    assert table.schema == store.schema()
+    assert table.schema == row_schema()
 
 
 def test_write_is_atomic_fixed_name_and_never_overwrites(tmp_path, rows):
@@ -115,8 +117,8 @@ def test_failures_and_manifest_roundtrip(tmp_path):
 # ---- base cache ---------------------------------------------------------------------------------
 def _ask_for_base(args):
     cache_dir, calls_file = args
-    import asp_dist.bases as bases
-    import asp_dist.base_cache as cache
+    import asp_dist.sweep.base_cache as cache
+    import asp_dist.training.bases as bases
 
     original = bases.train_accepted_base
 
@@ -150,7 +152,7 @@ def test_base_cache_trains_once_under_concurrent_requests(tmp_path):
 
 
 def test_base_from_cache_gives_the_same_row_as_training_it(tmp_path):
-    from asp_dist.cell import comparable
+    from asp_dist.training.row import comparable
 
     spec = CellSpec(domain="signaling", method="asp", paired=2, train_steps=30, batch_size=16, unpaired_size=64)
     get_base(spec, tmp_path)
@@ -162,12 +164,12 @@ def test_base_from_cache_gives_the_same_row_as_training_it(tmp_path):
 def test_pinned_schema_file_roundtrip(tmp_path, rows):
     store.write_row(tmp_path, rows[1], sweep_id="s")
     path = store.cell_path(tmp_path, rows[1]["domain"], rows[1]["method"], rows[1]["cell_id"])
-    assert pq.read_schema(path).remove_metadata() == store.schema()
+    assert pq.read_schema(path).remove_metadata() == row_schema()
 
 
 def test_rejected_base_is_remembered_for_the_other_cells_of_its_trial(tmp_path, monkeypatch):
-    import asp_dist.base_cache as cache
-    from asp_dist.bases import BaseRejected
+    import asp_dist.sweep.base_cache as cache
+    from asp_dist.training.bases import BaseRejected
 
     calls = []
     original = cache.train_accepted_base

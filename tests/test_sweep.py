@@ -19,10 +19,12 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from asp_dist import store
-from asp_dist.cell import comparable, run_cell
-from asp_dist.spaces import expand
-from asp_dist.sweep import FAULT_ENV
+from asp_dist.results import store
+from asp_dist.sweep.spaces import expand
+from asp_dist.sweep.tune import FAULT_ENV
+from asp_dist.training.cell import run_cell
+from asp_dist.training.row import comparable
+from asp_dist.training.row import schema as row_schema
 
 pytestmark = pytest.mark.slow
 
@@ -91,7 +93,7 @@ def test_smoke_sweep_end_to_end(tmp_path):
     files = parquet_files(sweep_dir)
     assert len(files) == 18
     for f in files:
-        assert pq.read_schema(f).remove_metadata() == store.schema()
+        assert pq.read_schema(f).remove_metadata() == row_schema()
     df = store.read_rows(sweep_dir)
     assert len(df) == 18 and df["cell_id"].is_unique
     assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")}

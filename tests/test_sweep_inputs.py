@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from asp_dist import store
 from asp_dist.cli import main
-from asp_dist.progress import SweepProgress, format_duration
-from asp_dist.spaces import expand
-from asp_dist.sweep import check_manifest, sweep_lock, sweep_status
+from asp_dist.results import store
+from asp_dist.sweep.progress import SweepProgress, format_duration
+from asp_dist.sweep.spaces import expand
+from asp_dist.sweep.tune import check_manifest, sweep_lock, sweep_status
 
 
 def run_cli(capsys, *argv):
@@ -65,14 +65,6 @@ def test_bad_domain_method_or_value(capsys, tmp_path, text, needle):
     code, err = run_cli(capsys, "sweep", str(space), "--results", str(tmp_path / "results"))
     one_line_error(code, err, needle)
     assert not (tmp_path / "results").exists()
-
-
-def test_domain_not_implemented(capsys, tmp_path, monkeypatch):
-    import asp_dist.domains as domains
-
-    monkeypatch.setattr(domains, "available_domains", lambda: ["signaling"])
-    code, err = run_cli(capsys, "sweep", "paper-vae", "--results", str(tmp_path))
-    one_line_error(code, err, "needs domain(s) vae, not implemented yet")
 
 
 def test_bad_numbers_and_names(capsys, tmp_path):

@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from asp_dist import theory
+from asp_dist.analysis import theory
 
 
 def test_exact_log_ratio_small_case_by_hand():

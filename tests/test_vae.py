@@ -10,12 +10,13 @@ import math
 import pytest
 import torch
 
-from asp_dist.bases import train_accepted_base
-from asp_dist.cell import comparable, run_cell
 from asp_dist.domains import get_domain
-from asp_dist.domains.base import check_domain
+from asp_dist.domains.contract import check_domain
 from asp_dist.domains.vae import VAE
 from asp_dist.spec import CellSpec, SpecError
+from asp_dist.training.bases import train_accepted_base
+from asp_dist.training.cell import run_cell
+from asp_dist.training.row import comparable
 
 TINY = dict(domain="vae", vae_train_images=300, vae_hidden=64, vae_latent_dim=4, base_train_steps=40,
             vae_base_batch=32, train_steps=20, batch_size=32, unpaired_size=64, eval_episodes=200,

@@ -27,13 +27,17 @@ self-play state tensors, so it checkpoints with the cell.
 from __future__ import annotations
 
 import itertools
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.base import Domain, MetricInfo, Progress, SelfPlayOut, Tensors, require, seeded
-from asp_dist.spec import CellSpec
+from asp_dist.domains.contract import Domain, MetricInfo, ProgressFn, SelfPlayOut, Tensors, require
+from asp_dist.nn import seeded
+
+if TYPE_CHECKING:
+    from asp_dist.spec import CellSpec
 
 AGENTS = 3  # agents per game, and levers (paper: 3)
 POOL = 1024  # paired games are the first n of a fixed pool, so P(n) is a prefix of P(n+1)
@@ -203,7 +207,7 @@ class LeversDomain(Domain):
         return seeded(seed, lambda: CommNet(spec.levers_num_ids, spec.levers_hidden))
 
     # ---- base -------------------------------------------------------------------------------------
-    def train_base(self, spec: CellSpec, seed: int, progress: Progress | None = None) -> tuple[nn.Module, float]:
+    def train_base(self, spec: CellSpec, seed: int, progress: ProgressFn | None = None) -> tuple[nn.Module, float]:
         net = self._net(spec, seed)
         gen = torch.Generator().manual_seed(seed)
         opt = torch.optim.Adam(net.parameters(), lr=spec.levers_base_lr)

@@ -14,9 +14,9 @@ last step is a true terminal). The message is differentiable: the listener's pol
 loss flows back through it into the speaker.
 
 Everything is vectorised over environments; the only Python loops run over time steps.
-The new agents train with hand-derived gradients (particles_fused.py); the autograd functions
-here (a2c_update, paired_loss) are the reference that trainer is tested against, and train
-the base.
+The new agents train with hand-derived gradients (asp_dist/training/fast/particles.py); the
+autograd functions here (a2c_update, paired_loss) are the reference that trainer is tested
+against, and train the base.
 
 Choices the paper leaves open (measurements in docs/decisions.md, "Particle world"): the target
 is drawn in [-4, 4]² (the ≥ 300 bar is reachable from everywhere there); the reward is paid for
@@ -28,12 +28,18 @@ buffer); the base uses 256 envs.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, Tensors, require, seeded
-from asp_dist.spec import CellSpec, stable_hash
+from asp_dist.domains.contract import Domain, MetricInfo, SelfPlayOut, Tensors, require
+from asp_dist.hashing import stable_hash
+from asp_dist.nn import seeded
+
+if TYPE_CHECKING:
+    from asp_dist.spec import CellSpec
 
 BOX = 5.0                 # the world is [-BOX, BOX]²
 TARGET_BOX = 4.0          # targets are drawn in [-TARGET_BOX, TARGET_BOX]² (see docs/decisions.md)
@@ -277,12 +283,6 @@ class ParticlesDomain(Domain):
         """Messages on the agents' own state distribution: one uniform step of each of n episodes."""
         states = sample_steps(agents, n, spec.particles_episode_len, target_for(spec), gen)["state"]
         return {"message": agents.speak(states)}
-
-    def make_trainer(self, spec, agents, paired, unpaired, weights):
-        """Hand-derived gradients (particles_fused.py): the reference path's update, 2.4-3.3x faster."""
-        from asp_dist.domains.particles_fused import FusedParticleTrainer
-
-        return FusedParticleTrainer(spec, self, agents, paired, unpaired, weights)
 
     # ---- evaluation ---------------------------------------------------------------------------
     @torch.no_grad()

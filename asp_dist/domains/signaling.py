@@ -15,13 +15,17 @@ CI and the smoke sweep lean on it.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, require, seeded
-from asp_dist.spec import CellSpec
+from asp_dist.domains.contract import Domain, MetricInfo, SelfPlayOut, require
+from asp_dist.nn import seeded
+
+if TYPE_CHECKING:
+    from asp_dist.spec import CellSpec
 
 POOL = 4096  # paired states are the first n of a fixed pool, so P(n) is a prefix of P(n+1)
 

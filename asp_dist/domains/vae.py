@@ -22,15 +22,18 @@ scale: one paired example then weighs about as much as one self-play image when 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from asp_dist.data.mnist import PIXELS, load_mnist
-from asp_dist.domains.base import Domain, MetricInfo, SelfPlayOut, require, seeded
-from asp_dist.spec import CellSpec
+from asp_dist.domains.contract import Domain, MetricInfo, SelfPlayOut, require
+from asp_dist.nn import seeded
+
+if TYPE_CHECKING:
+    from asp_dist.spec import CellSpec
 
 FIGURE_LATENT_IMAGES = 1000  # test images whose codes are stored for the d = 2 scatter
 FIGURE_DECIMALS = 4

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import pandas as pd
 import torch
-
 from golden.cells import golden_specs
 
 OUT = Path(__file__).with_name("rows.parquet")
@@ -15,8 +14,9 @@ IGNORED = {"code_revision", "asp_dist_version"}
 
 
 def run_golden_rows() -> pd.DataFrame:
-    from asp_dist.cell import comparable, run_cell
     from asp_dist.spec import CellSpec
+    from asp_dist.training.cell import run_cell
+    from asp_dist.training.row import comparable
 
     torch.set_num_threads(1)
     rows = [comparable(run_cell(CellSpec(**d))) for d in golden_specs()]

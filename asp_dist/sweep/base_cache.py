@@ -20,10 +20,10 @@ import fcntl
 import json
 from pathlib import Path
 
-from asp_dist.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
-from asp_dist.domains.base import Progress
+from asp_dist.domains.contract import ProgressFn
+from asp_dist.fsutil import atomic_write
 from asp_dist.spec import CellSpec
-from asp_dist.store import atomic_write
+from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 
 
 def base_path(cache_dir: Path, base_key: str) -> Path:
@@ -47,7 +47,7 @@ def _load(path: Path, spec: CellSpec) -> BaseModel:
     return base
 
 
-def get_base(spec: CellSpec, cache_dir: Path, progress: Progress | None = None) -> tuple[BaseModel, bool]:
+def get_base(spec: CellSpec, cache_dir: Path, progress: ProgressFn | None = None) -> tuple[BaseModel, bool]:
     """The cell's base: loaded from the cache, or trained once and stored. Returns (base, was_cached)."""
     spec = spec.resolved()
     cache_dir = Path(cache_dir)

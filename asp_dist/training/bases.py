@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.base import Progress
+from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
 
 
@@ -38,7 +38,7 @@ class BaseModel:
                 "base_seed": self.seed, "base_attempt_scores": list(self.attempt_scores)}
 
 
-def train_accepted_base(spec: CellSpec, progress: Progress | None = None) -> BaseModel:
+def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> BaseModel:
     """Train base candidates with seeds seed, seed+1, ... until one meets the domain's bar."""
     import time
 

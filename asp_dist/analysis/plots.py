@@ -26,8 +26,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from asp_dist.stats import (StatsResult, bootstrap_median_ci, condition_key, group_seed, is_asp,  # noqa: E402
-                            treatment_order)
+from asp_dist.analysis.stats import (  # noqa: E402
+    StatsResult,
+    bootstrap_median_ci,
+    condition_key,
+    group_seed,
+    is_asp,
+    treatment_order,
+)
 
 METRIC_UNITS: dict[tuple[str, str], str] = {
     ("particles", "eval_mixed"): "mixed-team reward per 40-step episode",

@@ -8,11 +8,13 @@ log(1 - D(fake)); the non-saturating alternative -log D(fake) is offered as an o
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.base import init_mlp, seeded
+from asp_dist.nn import init_mlp, seeded
 
 
 class Discriminator(nn.Module):
@@ -43,14 +45,13 @@ class Adversaries(nn.Module):
     """One discriminator and optimiser per channel; updated once per training step."""
 
     def __init__(self, channel_dims: dict[str, int], hidden: int, layers: int, lr: float, seed: int,
-                 optimizer_options: dict | None = None):
+                 make_optimizer: Callable = torch.optim.Adam):
         super().__init__()
         self.discs = nn.ModuleDict({
             ch: seeded(seed + i, lambda d=dim: Discriminator(d, hidden, layers))
             for i, (ch, dim) in enumerate(sorted(channel_dims.items()))
         })
-        self.optims = {ch: torch.optim.Adam(d.parameters(), lr=lr, **(optimizer_options or {}))
-                       for ch, d in self.discs.items()}
+        self.optims = {ch: make_optimizer(d.parameters(), lr=lr) for ch, d in self.discs.items()}
 
     def step(self, real: dict[str, torch.Tensor], fake: dict[str, torch.Tensor]) -> float:
         """One BCE update of every discriminator; returns the mean discriminator loss."""

@@ -2,7 +2,7 @@
 
 A domain never knows which method trains it: it supplies the pieces (base training, paired
 and unpaired data, the self-play loss, the paired loss, the convention outputs watched by the
-adversaries, evaluation) and `asp_dist.cell` composes them with the method's loss weights.
+adversaries, evaluation) and `asp_dist.training` composes them with the method's loss weights.
 
 Randomness: every random choice goes through an explicit ``torch.Generator`` passed in, so
 that a seed reproduces a domain's output bit for bit and checkpoints can capture RNG state.
@@ -12,14 +12,17 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 from torch import nn
 
-from asp_dist.spec import CellSpec, SpecError
+from asp_dist.errors import SpecError
 
-Progress = Callable[[str, int, int, dict], None]
+if TYPE_CHECKING:  # a spec is resolved against the domains, so spec.py imports this package
+    from asp_dist.spec import CellSpec
+
+ProgressFn = Callable[[str, int, int, dict], None]
 """progress(phase, done, total, info): called now and then by long loops."""
 
 Tensors = dict[str, torch.Tensor]
@@ -64,7 +67,7 @@ class Domain(ABC):
 
     # ---- the base convention ------------------------------------------------------------------
     @abstractmethod
-    def train_base(self, spec: CellSpec, seed: int, progress: Progress | None = None) -> tuple[nn.Module, float]:
+    def train_base(self, spec: CellSpec, seed: int, progress: ProgressFn | None = None) -> tuple[nn.Module, float]:
         """Train one base candidate from `seed`; return (agents, score compared with the bar)."""
 
     @abstractmethod
@@ -97,11 +100,6 @@ class Domain(ABC):
     @abstractmethod
     def convention_outputs(self, spec: CellSpec, agents: nn.Module, n: int, gen: torch.Generator) -> Tensors:
         """n outputs per channel of the agents on their own input distribution (with grad)."""
-
-    def make_trainer(self, spec: CellSpec, agents: nn.Module, paired: Tensors, unpaired: Tensors, weights: Any) -> Any:
-        """A faster trainer computing the same update as asp_dist.cell.Trainer (e.g. hand-derived
-        gradients), or None to use that generic autograd trainer."""
-        return None
 
     @abstractmethod
     def evaluate(self, spec: CellSpec, base: nn.Module, agents: nn.Module, gen: torch.Generator) -> dict[str, float]:
@@ -183,21 +181,3 @@ def assert_same_tensors(a: Tensors, b: Tensors, what: str) -> None:
 def require(condition: bool, message: str) -> None:
     if not condition:
         raise SpecError(message)
-
-
-def init_mlp(sizes: list[int], activation: type[nn.Module] = nn.ReLU, out_activation: nn.Module | None = None) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i in range(len(sizes) - 1):
-        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        if i < len(sizes) - 2:
-            layers.append(activation())
-    if out_activation is not None:
-        layers.append(out_activation)
-    return nn.Sequential(*layers)
-
-
-def seeded(seed: int, build: Callable[[], nn.Module]) -> nn.Module:
-    """Build a module with parameters drawn from `seed`, leaving the global RNG untouched."""
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        return build()

@@ -15,8 +15,8 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from asp_dist.plots import Figure
-from asp_dist.stats import StatsResult, format_cell, is_asp, to_markdown, treatment_order
+from asp_dist.analysis.plots import Figure
+from asp_dist.analysis.stats import StatsResult, format_cell, is_asp, to_markdown, treatment_order
 
 # The paper's claims, to say next to our verdicts whether they held.
 PAPER_CLAIMS = {

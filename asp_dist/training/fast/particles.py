@@ -1,11 +1,11 @@
 """The particle world's training update with hand-derived gradients: the fast path.
 
-At the paper's batch of 8, an update of the reference path (asp_dist.cell.Trainer driving
-particles.a2c_update, paired_loss and adversary.Adversaries through autograd and
+At the paper's batch of 8, an update of the reference path (asp_dist.training.trainer.Trainer driving
+particles.a2c_update, paired_loss and training.adversary.Adversaries through autograd and
 torch.optim.Adam) is ~500 tiny tensor ops, and its time is per-op overhead: graph
 building, two backward passes, two optimisers walking their parameter lists. This trainer
 computes the *same* update (same terms, same order, same random draws) with explicit forward
-and backward passes over flat parameter buffers (asp_dist.flat_adam.FlatAdam): about a
+and backward passes over flat parameter buffers (FlatAdam): about a
 fifth of the ops and no graph. tests/test_particles_fused.py checks its gradients against
 autograd on the reference path, for every method and both adversarial losses.
 
@@ -24,9 +24,9 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from asp_dist.cell import Trainer
 from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, critic_features, env_step, spawn
-from asp_dist.flat_adam import FlatAdam
+from asp_dist.training.fast.flat_adam import FlatAdam
+from asp_dist.training.trainer import Trainer
 
 _tanh_backward = torch.ops.aten.tanh_backward
 _threshold_backward = torch.ops.aten.threshold_backward
@@ -96,9 +96,11 @@ class FusedParticleTrainer(Trainer):
     """Trainer with the same construction, checkpoints and loss diagnostics as the generic one,
     whose train_step is the hand-derived update described in the module docstring."""
 
+    def make_optimizer(self, params, lr: float) -> FlatAdam:
+        return FlatAdam(params, lr=lr)
+
     def __init__(self, spec, domain, agents, paired, unpaired, weights):
         super().__init__(spec, domain, agents, paired, unpaired, weights)
-        self.opt = FlatAdam(agents.parameters(), lr=spec.lr)
         (self.sw1, self.sb1, self.sw2, self.sb2, self.lw1, self.lb1, self.lw2, self.lb2,
          self.cw1, self.cb1, self.cw2, self.cb2) = self.opt.param_views
         (self.g_sw1, self.g_sb1, self.g_sw2, self.g_sb2, self.g_lw1, self.g_lb1, self.g_lw2, self.g_lb2,
@@ -111,8 +113,7 @@ class FusedParticleTrainer(Trainer):
         self.disc = None
         if self.adversaries is not None:
             (channel, disc), = self.adversaries.discs.items()
-            disc_opt = FlatAdam(disc.parameters(), lr=spec.disc_lr)
-            self.adversaries.optims[channel] = disc_opt
+            disc_opt = self.adversaries.optims[channel]
             self.disc, self.disc_opt, self.real = FusedDiscriminator(disc, disc_opt), disc_opt, unpaired[channel]
             n_real, n_fake = spec.unpaired_batch, spec.batch_size * spec.particles_rollout_len
             # BCE targets and 1/N weights of the real rows then the fake rows.

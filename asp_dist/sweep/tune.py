@@ -11,7 +11,7 @@ This is the only module that imports Ray. Flow of ``run_sweep``:
    sweep was interrupted, its Tune experiment is restored (``Tuner.restore``) so running cells
    continue from their last checkpoint (``tune.get_checkpoint``);
 5. each trial gets its base from the shared cache, runs ``run_cell`` (checkpointing through
-   ``tune.report(..., checkpoint=...)``) and writes its row through ``asp_dist.store``.
+   ``tune.report(..., checkpoint=...)``) and writes its row through ``asp_dist.results.store``.
 
 A worker that dies is retried ``max_failures`` times from its last checkpoint; a cell that
 still fails (or fails deterministically, e.g. a base that never meets its bar) is recorded
@@ -44,13 +44,16 @@ import ray  # noqa: E402
 import torch  # noqa: E402
 from ray import tune  # noqa: E402
 
-from asp_dist import __version__, store  # noqa: E402
-from asp_dist.base_cache import get_base  # noqa: E402
-from asp_dist.bases import BaseRejected  # noqa: E402
-from asp_dist.cell import run_cell  # noqa: E402
-from asp_dist.progress import SweepProgress  # noqa: E402
-from asp_dist.spaces import SweepError, expand, grid_hash, space_file  # noqa: E402
+from asp_dist import __version__
+from asp_dist.errors import SweepError
+from asp_dist.fsutil import atomic_write  # noqa: E402
+from asp_dist.results import store  # noqa: E402
 from asp_dist.spec import CellSpec, SpecError  # noqa: E402
+from asp_dist.sweep.base_cache import get_base  # noqa: E402
+from asp_dist.sweep.progress import SweepProgress  # noqa: E402
+from asp_dist.sweep.spaces import expand, grid_hash, space_file  # noqa: E402
+from asp_dist.training.bases import BaseRejected  # noqa: E402
+from asp_dist.training.cell import run_cell  # noqa: E402
 
 __all__ = ["SweepError", "run_sweep", "resume_sweep", "sweep_status", "SweepResult"]
 
@@ -313,7 +316,7 @@ def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bo
     else:
         number = 1
     experiment = f"run-{number}"
-    store.atomic_write(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
+    atomic_write(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
     return experiment, False
 
 

@@ -34,7 +34,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy import stats as sps
 
-from asp_dist.query import Inputs, load_rows, open_inputs, read_manifest_ids
+from asp_dist.results.query import Inputs, load_rows, open_inputs, read_manifest_ids
 from asp_dist.spec import FIELD_NAMES, SpecError, stable_hash
 
 IDENTITY = ("domain", "method", "paired", "trial", "root_seed")

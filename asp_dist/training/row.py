@@ -1,0 +1,160 @@
+"""THE result row: what one finished cell records, and its pinned Arrow schema.
+
+run_cell builds the row here; the store (asp_dist.results.store) validates it against
+`schema()` and writes it; every reader reads with `schema()`. A column is added in one place,
+`_row_columns`, and everything downstream follows.
+
+Column order: the spec's fields, identity and base, the metrics of every domain (``eval_*``),
+loss diagnostics, figure data, timings, environment, resumption, then the sweep's own columns.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import socket
+import subprocess
+from datetime import datetime, timezone
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pyarrow as pa
+import torch
+
+from asp_dist import __version__
+from asp_dist.domains import DOMAINS
+from asp_dist.errors import SchemaError
+from asp_dist.spec import FIELD_NAMES, CellSpec, field_type
+
+if TYPE_CHECKING:
+    from asp_dist.domains.contract import Domain
+    from asp_dist.training.bases import BaseModel
+
+PHASES = ("base", "data", "train", "eval")
+LOSS_TERMS = ("self_play", "paired", "unpaired", "disc", "total")
+# Columns that legitimately differ between two runs of the same spec (time, place, resumption).
+VOLATILE_COLUMNS = frozenset(
+    [f"time_{p}_{k}" for p in PHASES + ("total",) for k in ("wall_s", "cpu_s")]
+    + ["base_train_wall_s", "base_train_cpu_s", "node", "finished_at", "resumed_from_step", "base_reused"]
+)
+# Stored dictionary-encoded, so that hive-style directories of the same names agree with them.
+PARTITION_COLUMNS = ("domain", "method")
+# Columns the sweep service adds to run_cell's row.
+SWEEP_COLUMNS: tuple[tuple[str, pa.DataType], ...] = (
+    ("sweep_id", pa.string()), ("ray_node_id", pa.string()), ("ray_version", pa.string()),
+)
+_ARROW_TYPES = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
+
+
+def _identity_columns() -> list[tuple[str, pa.DataType]]:
+    return [
+        ("cell_id", pa.string()), ("seed_init", pa.int64()), ("seed_train", pa.int64()),
+        ("base_key", pa.string()), ("base_score", pa.float64()), ("base_attempts", pa.int64()),
+        ("base_seed", pa.int64()), ("base_attempt_scores", pa.string()), ("base_reused", pa.bool_()),
+        ("base_train_wall_s", pa.float64()), ("base_train_cpu_s", pa.float64()),
+    ]
+
+
+def _outcome_columns() -> list[tuple[str, pa.DataType]]:
+    cols: list[tuple[str, pa.DataType]] = [("eval_mixed_higher_is_better", pa.bool_()),
+                                           ("metric_directions", pa.string())]
+    cols += [(f"loss_{k}", pa.float64()) for k in LOSS_TERMS]
+    cols.append(("figure_data", pa.string()))
+    cols += [(f"time_{p}_{k}", pa.float64()) for p in PHASES + ("total",) for k in ("wall_s", "cpu_s")]
+    cols += [(name, pa.string()) for name in ("node", "finished_at", "asp_dist_version", "torch_version",
+                                               "numpy_version", "python_version", "code_revision")]
+    cols.append(("resumed_from_step", pa.int64()))
+    return cols
+
+
+def metric_names() -> list[str]:
+    """The union of every registered domain's metrics (an ``eval_<name>`` column each)."""
+    return sorted({m for domain in DOMAINS.values() for m in domain.metrics})
+
+
+@lru_cache(maxsize=1)
+def schema() -> pa.Schema:
+    """The pinned schema of a result row."""
+    fields: list[pa.Field] = []
+    for name in FIELD_NAMES:
+        t = pa.dictionary(pa.int32(), pa.string()) if name in PARTITION_COLUMNS else _ARROW_TYPES[field_type(name)]
+        fields.append(pa.field(name, t))
+    fields += [pa.field(n, t) for n, t in _identity_columns()]
+    fields += [pa.field(f"eval_{m}", pa.float64()) for m in metric_names()]
+    fields += [pa.field(n, t) for n, t in _outcome_columns()]
+    fields += [pa.field(n, t) for n, t in SWEEP_COLUMNS]
+    return pa.schema(fields)
+
+
+def row_table(row: dict[str, Any]) -> pa.Table:
+    """One row as a table with the pinned schema; missing columns are null, unknown ones an error."""
+    sch = schema()
+    unknown = sorted(set(row) - set(sch.names))
+    if unknown:
+        raise SchemaError(f"row has column(s) not in the pinned schema: {', '.join(unknown)}; "
+                          f"add them to asp_dist/training/row.py")
+    arrays = []
+    for f in sch:
+        value = row.get(f.name)
+        if pa.types.is_dictionary(f.type):
+            arrays.append(pa.array([value], pa.string()).dictionary_encode())
+        else:
+            arrays.append(pa.array([value], f.type))
+    return pa.Table.from_arrays(arrays, schema=sch)
+
+
+def build_row(spec: CellSpec, domain: "Domain", base: "BaseModel", *, base_reused: bool, metrics: dict[str, float],
+              losses: dict[str, float | None], figure: dict | None, timings: dict[str, float],
+              resumed_from: int | None) -> dict[str, Any]:
+    """The flat row of one finished cell (scalars and strings only)."""
+    row: dict[str, Any] = spec.to_dict()
+    row.update({"cell_id": spec.cell_id, "seed_init": spec.seed_for("init"), "seed_train": spec.seed_for("train")})
+    meta = base.meta()
+    row.update({k: v for k, v in meta.items() if k != "base_attempt_scores"})
+    row["base_attempt_scores"] = json.dumps(meta["base_attempt_scores"])
+    row.update({"base_reused": base_reused, "base_train_wall_s": base.train_wall_s, "base_train_cpu_s": base.train_cpu_s})
+    row.update({f"eval_{k}": float(v) for k, v in metrics.items()})
+    row["eval_mixed_higher_is_better"] = domain.metrics["mixed"].higher_is_better
+    row["metric_directions"] = json.dumps({k: ("higher" if m.higher_is_better else "lower")
+                                           for k, m in domain.metrics.items()}, sort_keys=True)
+    row.update(losses)
+    row["figure_data"] = json.dumps(figure) if figure is not None else None
+    row.update(timings)
+    row.update(environment_columns())
+    row["resumed_from_step"] = resumed_from
+    return row
+
+
+def comparable(row: dict[str, Any]) -> dict[str, Any]:
+    """A row without the columns that differ between runs of one spec (for equality checks)."""
+    return {k: v for k, v in row.items() if k not in VOLATILE_COLUMNS}
+
+
+def environment_columns() -> dict[str, Any]:
+    return {
+        "node": socket.gethostname(),
+        "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "asp_dist_version": __version__,
+        "torch_version": torch.__version__,
+        "numpy_version": np.__version__,
+        "python_version": platform.python_version(),
+        "code_revision": code_revision(),
+    }
+
+
+@lru_cache(maxsize=1)
+def code_revision() -> str:
+    """Git commit of the asp_dist source (with '+dirty' for local changes), or 'unknown'."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        sha = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True,
+                             text=True, timeout=5).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "asp_dist"], cwd=root,
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (sha + ("+dirty" if dirty else "")) if sha else "unknown"
+
+

@@ -1,0 +1,107 @@
+"""The training loop of one cell: L = w_sp·L_sp + λ0·L_p + λ1·L_u, one update at a time.
+
+The domain supplies the pieces (self-play step, paired loss, convention outputs); the method
+supplies the weights (asp_dist.training.methods); the adversaries (asp_dist.training.adversary)
+are stepped once per update before the model's gradient. The whole state, generator included,
+is a state_dict, so a restored trainer continues bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Any
+
+import torch
+
+from asp_dist.domains.contract import Domain, Tensors
+from asp_dist.spec import CellSpec
+from asp_dist.training.adversary import Adversaries
+from asp_dist.training.methods import LossWeights, compose_loss
+
+
+class Trainer:
+    """The training loop shared by every domain and method (the reference path: autograd and
+    torch.optim.Adam). A fast trainer (asp_dist.training.fast) subclasses it and replaces
+    make_optimizer and train_step with an update that computes the same thing."""
+
+    @classmethod
+    def supports(cls, spec: CellSpec) -> bool:
+        """Whether this trainer implements every knob value of `spec` (the reference does)."""
+        return True
+
+    def __init__(self, spec: CellSpec, domain: Domain, agents: torch.nn.Module, paired: Tensors,
+                 unpaired: Tensors, weights: LossWeights):
+        self.spec, self.domain, self.agents = spec, domain, agents
+        self.paired, self.unpaired, self.weights = paired, unpaired, weights
+        self.opt = self.make_optimizer(agents.parameters(), lr=spec.lr)
+        self.gen = torch.Generator().manual_seed(spec.seed_for("train"))
+        self.adversaries = None
+        if weights.needs_adversary:
+            self.adversaries = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers,
+                                           spec.disc_lr, seed=spec.seed_for("init") + 1000,
+                                           make_optimizer=self.make_optimizer)
+        self.sp_state = domain.init_self_play(spec, agents, self.gen) if weights.needs_self_play else {}
+        self.step = 0
+        # Diagnostics: mean of each loss term over the last 10 % of training.
+        self.window_start = int(0.9 * spec.train_steps)
+        self.loss_sums: dict[str, float] = defaultdict(float)
+
+    def make_optimizer(self, params, lr: float):
+        """The optimiser of the new agents and of each discriminator."""
+        return torch.optim.Adam(params, lr=lr, **self.domain.optimizer_options)
+
+    def train_step(self) -> None:
+        spec, w = self.spec, self.weights
+        sp_loss = paired_loss = unpaired_loss = None
+        sp_out = None
+        if w.needs_self_play:
+            sp_out = self.domain.self_play_step(spec, self.agents, self.sp_state, self.gen)
+            sp_loss = sp_out.loss
+        if w.paired != 0.0:
+            paired_loss = self.domain.paired_loss(spec, self.agents, self.paired)
+        disc_loss = None
+        if self.adversaries is not None:
+            fake = sp_out.outputs if sp_out is not None and sp_out.outputs else \
+                self.domain.convention_outputs(spec, self.agents, spec.unpaired_batch, self.gen)
+            real = {ch: u[torch.randint(len(u), (spec.unpaired_batch,), generator=self.gen)]
+                    for ch, u in self.unpaired.items()}
+            disc_loss = self.adversaries.step(real, fake)
+            unpaired_loss = self.adversaries.model_loss(fake, spec.adversary_loss)
+        total = compose_loss(w, sp_loss, paired_loss, unpaired_loss)
+        self.opt.zero_grad(set_to_none=True)
+        if total.requires_grad:
+            total.backward()
+            self.opt.step()
+        if self.step >= self.window_start:
+            for name, value in (("self_play", sp_loss), ("paired", paired_loss), ("unpaired", unpaired_loss),
+                                ("disc", disc_loss), ("total", total)):
+                if value is not None:
+                    self.loss_sums[name] += float(value.detach() if torch.is_tensor(value) else value)
+            self.loss_sums["_count"] += 1
+        self.step += 1
+
+    def loss_columns(self) -> dict[str, float | None]:
+        n = self.loss_sums.get("_count", 0)
+        return {f"loss_{k}": (self.loss_sums[k] / n if n and k in self.loss_sums else None)
+                for k in ("self_play", "paired", "unpaired", "disc", "total")}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "step": self.step,
+            "agents": self.agents.state_dict(),
+            "opt": self.opt.state_dict(),
+            "adversaries": self.adversaries.full_state() if self.adversaries is not None else None,
+            "gen": self.gen.get_state(),
+            "sp_state": {k: v.clone() for k, v in self.sp_state.items()},
+            "loss_sums": dict(self.loss_sums),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.step = state["step"]
+        self.agents.load_state_dict(state["agents"])
+        self.opt.load_state_dict(state["opt"])
+        if self.adversaries is not None:
+            self.adversaries.load_full_state(state["adversaries"])
+        self.gen.set_state(state["gen"])
+        self.sp_state = {k: v.clone() for k, v in state["sp_state"].items()}
+        self.loss_sums = defaultdict(float, state["loss_sums"])
