@@ -34,6 +34,18 @@ class MetricInfo:
     doc: str
 
 
+@dataclass(frozen=True)
+class PaperFacts:
+    """What the paper says about a domain; the stats job, the figures and the report read it
+    from here so that no stage keeps its own per-domain table."""
+
+    metric_label: str  # what eval_mixed measures, with its unit (axis label)
+    claim: str  # the paper's finding for this domain, one sentence
+    test_paired: tuple[int, int] | None = None  # paired counts of the paper's Friedman test (None: all)
+    threshold: tuple[float, str] | None = None  # data-efficiency threshold of eval_mixed, and where it comes from
+    knob_labels: dict[str, str] = field(default_factory=dict)  # axis labels of this domain's swept knobs
+
+
 @dataclass
 class SelfPlayOut:
     """One self-play update's loss and the convention outputs it produced (with grad)."""
@@ -51,6 +63,8 @@ class Domain(ABC):
     channels: tuple[str, ...] = ()
     # Metrics returned by evaluate(); must include "mixed", "self_play_new" and "self_play_base".
     metrics: dict[str, MetricInfo] = {}
+    # The paper's statements about this domain (units, test range, thresholds, claim).
+    paper: PaperFacts
     # Base acceptance: spec field holding the bar, and whether the base score must be >= it.
     accept_field: str | None = None
     # Extra keyword arguments for the Adam optimisers of the new agents and the discriminators,

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.contract import Domain, MetricInfo, SelfPlayOut, require
+from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, SelfPlayOut, require
 from asp_dist.nn import seeded
 
 if TYPE_CHECKING:
@@ -75,6 +75,11 @@ class SignalingDomain(Domain):
     name = "signaling"
     channels = ("token",)
     accept_field = None
+    paper = PaperFacts(
+        metric_label="mixed-team accuracy (fraction of states)",
+        claim="(policy-space analysis) ASP prunes more conventions, so helps more, the more skewed the tokens",
+        knob_labels={"signaling_skew": "token skew (0 = uniform)"},
+    )
     defaults = dict(
         signaling_states=32, signaling_tokens=4, signaling_skew=1.0,
         lambda_paired=1.0, lambda_unpaired=1.0, unpaired_size=1024,

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from asp_dist.data.mnist import PIXELS, load_mnist
-from asp_dist.domains.contract import Domain, MetricInfo, SelfPlayOut, require
+from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, SelfPlayOut, require
 from asp_dist.nn import seeded
 
 if TYPE_CHECKING:
@@ -80,6 +80,13 @@ class VAEDomain(Domain):
     name = "vae"
     channels = ("latent",)
     accept_field = None  # every base is kept; its test MSE is recorded as base_score
+    paper = PaperFacts(
+        metric_label="mixed reconstruction MSE per pixel",
+        claim="ASP better reconstructions than OSP and PC at intermediate paired counts; robust to latent size",
+        test_paired=(8, 32),
+        threshold=(0.06, "paper: MSE 0.06 ~ right digit"),
+        knob_labels={"vae_latent_dim": "latent size d (dimensions)"},
+    )
     defaults = dict(
         vae_latent_dim=32, vae_hidden=512, vae_kl_weight=1.0, vae_base_lr=1e-3, vae_base_batch=128,
         vae_train_images=0,
