@@ -10,9 +10,9 @@ import json
 
 import pytest
 import torch
+from budgets import tiny_spec
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import check_domain
 from asp_dist.domains.levers import (
     AGENTS,
     CommNet,
@@ -28,12 +28,9 @@ from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
 
-TINY = dict(domain="levers", levers_hidden=8, base_train_steps=30, train_steps=20, batch_size=16,
-            levers_replay_size=64, unpaired_size=60, disc_hidden=8, eval_episodes=120, levers_accept_reward=0.0)
-
 
 def tiny(**changes) -> CellSpec:
-    return CellSpec(**{**TINY, **changes})
+    return tiny_spec("levers", **changes)
 
 
 @pytest.fixture(scope="module")
@@ -127,10 +124,6 @@ def test_evaluation_is_exhaustive_at_the_default_size(domain, base):
 
 
 # ---- contract, data, training ---------------------------------------------------------------------
-def test_contract(domain):
-    check_domain(domain, tiny(method="asp", paired=4))
-
-
 def test_paired_set_holds_base_outputs_for_its_ids(domain, base):
     spec = tiny().resolved()
     p = domain.paired(spec, base.agents, 5, torch.Generator().manual_seed(0))

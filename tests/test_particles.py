@@ -6,26 +6,19 @@ import io
 
 import pytest
 import torch
+from budgets import tiny_spec
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import check_domain
 from asp_dist.domains.particles import BOX, MOVES, NEAR_REWARD, POOL, ParticleAgents, a2c_update, env_step, target_for
 from asp_dist.spec import CellSpec, SpecError
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
 
-# Every budget shrunk: a few hundred updates, small nets, 64 eval episodes.
-TINY = dict(domain="particles", train_steps=40, base_train_steps=30, particles_base_envs=32, eval_episodes=64,
-            unpaired_size=256, particles_hidden=16, particles_message_dim=16, particles_accept_return=0.0)
-
 
 def tiny(**changes) -> CellSpec:
-    return CellSpec(**{**TINY, **changes})
+    return tiny_spec("particles", **changes)
 
-
-def test_contract():
-    check_domain(get_domain("particles"), tiny(paired=4))
 
 
 def test_target_depends_on_trial_not_on_base_seed():

@@ -2,13 +2,8 @@ import pytest
 import torch
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import check_domain
 from asp_dist.domains.signaling import class_sizes, state_classes
 from asp_dist.spec import CellSpec
-
-
-def test_contract():
-    check_domain(get_domain("signaling"), CellSpec(domain="signaling", paired=4))
 
 
 @pytest.mark.parametrize("states, tokens, skew", [(32, 4, 0.0), (32, 4, 1.0), (10, 3, 5.0), (100, 7, 0.3)])

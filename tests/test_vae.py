@@ -9,22 +9,18 @@ import math
 
 import pytest
 import torch
+from budgets import tiny_spec
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import check_domain
 from asp_dist.domains.vae import VAE
 from asp_dist.spec import CellSpec, SpecError
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
 
-TINY = dict(domain="vae", vae_train_images=300, vae_hidden=64, vae_latent_dim=4, base_train_steps=40,
-            vae_base_batch=32, train_steps=20, batch_size=32, unpaired_size=64, eval_episodes=200,
-            disc_hidden=16)
-
 
 def tiny(**changes) -> CellSpec:
-    return CellSpec(**{**TINY, **changes})
+    return tiny_spec("vae", **changes)
 
 
 @pytest.fixture(scope="module")
@@ -36,9 +32,6 @@ def domain():
 def base():
     return train_accepted_base(tiny(paired=4))
 
-
-def test_contract(domain):
-    check_domain(domain, tiny(method="asp", paired=4))
 
 
 def test_defaults_follow_the_paper(domain):
