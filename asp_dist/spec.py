@@ -22,6 +22,14 @@ __all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", 
 
 METHODS = ("pc", "osp", "asp")
 ADVERSARY_LOSSES = ("neg_bce", "non_saturating")
+LAMBDA_SCHEDULES = ("constant", "warmup", "anneal")
+CHOICES: dict[str, tuple[str, ...]] = {
+    "adversary_loss": ADVERSARY_LOSSES,
+    "lambda_unpaired_schedule": LAMBDA_SCHEDULES,
+    "vae_recon_loss": ("bce", "mse"),
+    "vae_adversary_input": ("mu", "z"),
+    "vae_paired_reduction": ("sum", "mean"),
+}
 
 
 def knob(default: Any = None, doc: str = "") -> Any:
@@ -43,6 +51,10 @@ class CellSpec:
     adversary_loss: str = knob("neg_bce", "Model's adversarial term: neg_bce (paper: -BCE) | non_saturating (-log D(fake)).")
     unpaired_size: int | None = knob(None, "|U|: number of unpaired base outputs per convention channel.")
     unpaired_batch: int | None = knob(None, "Unpaired samples shown to each discriminator per update (default: batch_size).")
+    lambda_unpaired_schedule: str = knob("constant", "λ1 over training: constant | warmup (0 → λ1 over the first "
+                                                     "lambda_schedule_frac of updates) | anneal (λ1 → 0 over that fraction).")
+    lambda_schedule_frac: float = knob(0.5, "Fraction of the updates over which a λ1 warm-up or anneal runs.")
+    disc_steps: int = knob(1, "Discriminator updates per model update (each on a fresh batch of U, the same fakes).")
 
     # --- optimisation of the new agents ---------------------------------------------------
     train_steps: int | None = knob(None, "Number of training updates (batches) of the new agents.")
@@ -55,6 +67,8 @@ class CellSpec:
     # --- base model and evaluation ----------------------------------------------------------
     base_train_steps: int | None = knob(None, "Training updates of the base model.")
     base_max_attempts: int = knob(5, "Base retrained with the next seed at most this many times if it misses the bar.")
+    base_steps_growth: float = knob(1.0, "Attempt k (from 0) of a base trains base_train_steps · growth^k updates: "
+                                         "retries escalate the budget instead of repeating it.")
     eval_episodes: int | None = knob(None, "Evaluation size per mixed-team composition (episodes, images or games).")
     record_figure_data: bool = knob(False, "Store figure arrays (latent codes, communication vectors) in the row.")
 
@@ -74,6 +88,11 @@ class CellSpec:
     particles_base_envs: int | None = knob(None, "Parallel environments used to train the base pair.")
     particles_base_lr: float | None = knob(None, "Adam learning rate of the base pair.")
     particles_accept_return: float | None = knob(None, "Base accepted at mean self-play return >= this (paper: 300).")
+    particles_replay_size: int = knob(0, "0: on-policy A2C on the current rollout. N > 0: the paper's replay buffer — "
+                                         "each update adds batch_size fresh transitions to a FIFO of the last N and "
+                                         "trains (and shows the discriminator) a uniform batch of it.")
+    particles_paired_listener: bool = knob(True, "Paired loss adds the listener's cross-entropy on the base's "
+                                                 "(message, action); false: speaker MSE only, as the paper states.")
 
     # --- MNIST VAE -------------------------------------------------------------------------------
     vae_latent_dim: int | None = knob(None, "Latent size d (paper: 32; grid 2..128).")
@@ -82,6 +101,10 @@ class CellSpec:
     vae_base_lr: float | None = knob(None, "Adam learning rate of the base VAE.")
     vae_base_batch: int | None = knob(None, "Batch size of base VAE training (paper: 128).")
     vae_train_images: int | None = knob(None, "Use only the first N training images (0 = all 60k); for tests.")
+    vae_recon_loss: str = knob("bce", "Reconstruction term of the VAE loss: bce (Bernoulli, summed over pixels) | "
+                                      "mse (squared error summed over pixels).")
+    vae_adversary_input: str = knob("mu", "What the adversary compares: mu (mean encodings) | z (sampled codes).")
+    vae_paired_reduction: str = knob("sum", "Paired MSE summed over latent dims and pixels (sum) or averaged (mean).")
 
     # --- CommNet levers --------------------------------------------------------------------------
     levers_hidden: int | None = knob(None, "Hidden size of the CommNet f-blocks.")
@@ -127,8 +150,9 @@ class CellSpec:
             raise SpecError(f"unknown domain {self.domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
         if self.method not in METHODS:
             raise SpecError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
-        if self.adversary_loss not in ADVERSARY_LOSSES:
-            raise SpecError(f"adversary_loss must be one of {', '.join(ADVERSARY_LOSSES)}, got {self.adversary_loss!r}")
+        for name, allowed in CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise SpecError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         for name in ("paired", "trial", "root_seed"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 0:
@@ -144,30 +168,39 @@ class CellSpec:
             if value < 0:
                 raise SpecError(f"{f.name} must be >= 0, got {value!r}")
         for name in ("train_steps", "batch_size", "unpaired_size", "unpaired_batch", "eval_episodes",
-                     "disc_hidden", "disc_layers", "base_max_attempts"):
+                     "disc_hidden", "disc_layers", "base_max_attempts", "disc_steps"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise SpecError(f"{name} must be >= 1, got {value!r}")
-        for name in ("lr", "disc_lr"):
+        for name in ("lr", "disc_lr", "base_steps_growth"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise SpecError(f"{name} must be > 0, got {value!r}")
+        if not 0.0 < self.lambda_schedule_frac <= 1.0:
+            raise SpecError(f"lambda_schedule_frac must be in (0, 1], got {self.lambda_schedule_frac!r}")
         get_domain(self.domain).validate(self)
 
     # ---- identity ----------------------------------------------------------------------------
+    def identity_dict(self) -> dict[str, Any]:
+        """The fields that identify what runs: every field, except knobs added after the first
+        results were recorded while they hold the value that reproduces the earlier behaviour
+        (HASH_NEUTRAL). Adding a knob therefore changes no existing cell id, seed or base key."""
+        return {k: v for k, v in self.to_dict().items() if not (k in HASH_NEUTRAL and v == HASH_NEUTRAL[k])}
+
     @property
     def cell_id(self) -> str:
         """Readable, stable id: same resolved spec -> same id, on every machine."""
         spec = self.resolved()
-        digest = stable_hash(spec.to_dict())[:10]
+        digest = stable_hash(spec.identity_dict())[:10]
         return f"{spec.domain}-{spec.method}-p{spec.paired}-t{spec.trial}-{digest}"
 
     def base_fields(self) -> dict[str, Any]:
         """The fields the base model depends on; cells agreeing on these share one base."""
         spec = self.resolved()
         prefix = spec.domain + "_"
-        keep = {"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts"}
-        return {k: v for k, v in spec.to_dict().items() if k in keep or k.startswith(prefix)}
+        keep = {"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts", "base_steps_growth"}
+        return {k: v for k, v in spec.identity_dict().items()
+                if k in keep or (k.startswith(prefix) and k not in NEW_AGENTS_ONLY)}
 
     @property
     def base_key(self) -> str:
@@ -185,11 +218,23 @@ class CellSpec:
             material = {"base": self.base_fields(), "paired": spec.paired}
         elif purpose in ("train", "eval"):
             # Output-only switches must not change what is trained.
-            material = {k: v for k, v in spec.to_dict().items() if k not in OUTPUT_ONLY_FIELDS}
+            material = {k: v for k, v in spec.identity_dict().items() if k not in OUTPUT_ONLY_FIELDS}
         else:
             raise ValueError(f"unknown seed purpose {purpose!r}")
         return int(stable_hash({"purpose": purpose, "material": material})[:12], 16)
 
+
+# Knobs added after rows were first recorded, with the value that reproduces the behaviour
+# before them. At that value they are left out of cell ids, seeds and base keys (identity_dict).
+HASH_NEUTRAL: dict[str, Any] = {
+    "lambda_unpaired_schedule": "constant", "lambda_schedule_frac": 0.5, "disc_steps": 1,
+    "base_steps_growth": 1.0, "particles_replay_size": 0, "particles_paired_listener": True,
+    "vae_recon_loss": "bce", "vae_adversary_input": "mu", "vae_paired_reduction": "sum",
+}
+
+# Domain knobs that shape only how the new agents train: cells differing in them share a base.
+NEW_AGENTS_ONLY = frozenset({"particles_replay_size", "particles_paired_listener", "vae_adversary_input",
+                             "vae_paired_reduction"})
 
 # Fields that change what a cell records, never what it trains or how it is evaluated.
 OUTPUT_ONLY_FIELDS = frozenset({"record_figure_data"})

@@ -26,10 +26,11 @@ class Discriminator(nn.Module):
         return self.net(x).squeeze(-1)  # logits
 
 
-def discriminator_loss(disc: Discriminator, real: torch.Tensor, fake: torch.Tensor) -> torch.Tensor:
-    real_logits, fake_logits = disc(real), disc(fake.detach())
-    return (F.binary_cross_entropy_with_logits(real_logits, torch.ones_like(real_logits))
-            + F.binary_cross_entropy_with_logits(fake_logits, torch.zeros_like(fake_logits)))
+def disc_diagnostics(real_logits: torch.Tensor, fake_logits: torch.Tensor) -> dict[str, float]:
+    """What the learning curves record of a discriminator: accuracy on each side and mean D(fake)."""
+    return {"disc_acc_real": float((real_logits > 0).float().mean()),
+            "disc_acc_fake": float((fake_logits < 0).float().mean()),
+            "d_fake": float(torch.sigmoid(fake_logits).mean())}
 
 
 def model_adversarial_loss(disc: Discriminator, fake: torch.Tensor, kind: str) -> torch.Tensor:
@@ -53,16 +54,24 @@ class Adversaries(nn.Module):
         })
         self.optims = {ch: make_optimizer(d.parameters(), lr=lr) for ch, d in self.discs.items()}
 
-    def step(self, real: dict[str, torch.Tensor], fake: dict[str, torch.Tensor]) -> float:
-        """One BCE update of every discriminator; returns the mean discriminator loss."""
+    def step(self, real: dict[str, torch.Tensor], fake: dict[str, torch.Tensor],
+             diagnostics: dict[str, float] | None = None) -> float:
+        """One BCE update of every discriminator; returns the mean discriminator loss. With
+        `diagnostics`, also adds (channel means, before the update) its accuracy on real and on
+        fake samples and its mean D(fake)."""
         total = 0.0
         for ch, disc in self.discs.items():
             opt = self.optims[ch]
             opt.zero_grad(set_to_none=True)
-            loss = discriminator_loss(disc, real[ch], fake[ch])
+            real_logits, fake_logits = disc(real[ch]), disc(fake[ch].detach())
+            loss = (F.binary_cross_entropy_with_logits(real_logits, torch.ones_like(real_logits))
+                    + F.binary_cross_entropy_with_logits(fake_logits, torch.zeros_like(fake_logits)))
             loss.backward()
             opt.step()
             total += float(loss.detach())
+            if diagnostics is not None:
+                for name, value in disc_diagnostics(real_logits.detach(), fake_logits.detach()).items():
+                    diagnostics[name] = diagnostics.get(name, 0.0) + value / len(self.discs)
         return total / max(len(self.discs), 1)
 
     def model_loss(self, fake: dict[str, torch.Tensor], kind: str) -> torch.Tensor:

@@ -39,7 +39,9 @@ class BaseModel:
 
 
 def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> BaseModel:
-    """Train base candidates with seeds seed, seed+1, ... until one meets the domain's bar."""
+    """Train base candidates with seeds seed, seed+1, ... until one meets the domain's bar.
+    Attempt k trains base_train_steps · base_steps_growth^k updates, so that a retry is not
+    just another draw of a budget that was too small."""
     import time
 
     spec = spec.resolved()
@@ -50,7 +52,9 @@ def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> B
     wall0, cpu0 = time.perf_counter(), time.process_time()
     for attempt in range(spec.base_max_attempts):
         seed = first_seed + attempt
-        agents, score = domain.train_base(spec, seed, progress)
+        steps = attempt_steps(spec.base_train_steps, spec.base_steps_growth, attempt)
+        attempt_spec = spec if steps == spec.base_train_steps else spec.replace(base_train_steps=steps)
+        agents, score = domain.train_base(attempt_spec, seed, progress)
         scores.append(float(score))
         if bar is None or score >= bar:
             return BaseModel(agents=agents, key=spec.base_key, score=float(score), attempts=attempt + 1,
@@ -59,6 +63,10 @@ def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> B
     raise BaseRejected(f"{spec.domain} base for trial {spec.trial}: no attempt of {spec.base_max_attempts} "
                        f"reached {domain.accept_field} = {bar} (scores {[round(s, 3) for s in scores]}); "
                        f"raise base_train_steps or base_max_attempts")
+
+
+def attempt_steps(base_steps: int, growth: float, attempt: int) -> int:
+    return int(round(base_steps * growth**attempt))
 
 
 def base_to_bytes(base: BaseModel) -> bytes:

@@ -55,7 +55,8 @@ class PhaseTimer:
 
 def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: ProgressFn | None = None,
              checkpoint: Checkpoint | None = None, restore: dict | None = None,
-             checkpoint_every_steps: int | None = None, checkpoint_every_s: float = 30.0) -> dict[str, Any]:
+             checkpoint_every_steps: int | None = None, checkpoint_every_s: float = 30.0,
+             curve: list[dict[str, float]] | None = None) -> dict[str, Any]:
     """Run one cell and return its result row (a flat dict of scalars and strings).
 
     base        a trained base to reuse (else trained here, deterministically from the spec)
@@ -63,6 +64,9 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
     checkpoint  called with the full training state every `checkpoint_every_steps` updates, or
                 every `checkpoint_every_s` seconds when no step interval is given
     restore     a state previously passed to `checkpoint`: training continues from it
+    curve       a list to fill with the cell's learning curve: ~50 points (dicts with "step",
+                loss terms, discriminator accuracy and D(fake), and at ~10 of them "probe_*"
+                metrics: the domain's evaluation against the base on a tenth of eval_episodes)
     """
     spec = spec.resolved()
     domain = get_domain(spec.domain)
@@ -83,6 +87,8 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
         unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
         agents = domain.new_agents(spec, spec.seed_for("init"))
         trainer = choose_trainer(spec, domain, agents, paired, unpaired, weights)
+    if curve is not None:
+        trainer.probe = make_probe(spec, domain, base, agents)
     if restore is not None:
         trainer.load_state_dict(restore["trainer"])
     resumed_from = trainer.step if restore is not None else None
@@ -113,5 +119,19 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
     if progress is not None:
         progress("eval", 1, 1, {"mixed": metrics["mixed"]})
 
+    if curve is not None:
+        curve.extend(trainer.curve)
     return build_row(spec, domain, base, base_reused=base_reused, metrics=metrics, losses=trainer.loss_columns(),
                      figure=figure, timings=timer.columns(), resumed_from=resumed_from)
+
+
+def make_probe(spec: CellSpec, domain, base: BaseModel, agents: torch.nn.Module):
+    """A cheap evaluation for the learning curve: the domain's own, on a tenth of eval_episodes,
+    with a generator of its own so that probing never changes what is trained."""
+    small = spec.replace(eval_episodes=max(1, spec.eval_episodes // 10))
+
+    def probe(step: int) -> dict[str, float]:
+        with torch.no_grad():
+            return domain.evaluate(small, base.agents, agents, torch.Generator().manual_seed(spec.seed_for("eval") + step))
+
+    return probe

@@ -61,3 +61,13 @@ def compose_loss(weights: LossWeights, self_play: torch.Tensor | None, paired: t
         # Nothing to learn (e.g. PC with zero paired examples): a zero loss with no gradient.
         return torch.zeros(())
     return total
+
+
+def lambda_factor(spec: CellSpec, step: int) -> float:
+    """λ1's multiplier at update `step` under spec.lambda_unpaired_schedule: constant 1; warmup
+    rises linearly from 0 to 1 over the first lambda_schedule_frac of the updates; anneal falls
+    linearly from 1 to 0 over them (the remaining updates have no adversarial term)."""
+    if spec.lambda_unpaired_schedule == "constant":
+        return 1.0
+    ramp = min(1.0, step / max(1.0, spec.lambda_schedule_frac * spec.train_steps))
+    return ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp

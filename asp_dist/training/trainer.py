@@ -9,14 +9,18 @@ is a state_dict, so a restored trainer continues bit for bit.
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
 from asp_dist.domains.contract import Domain, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import LossWeights, compose_loss
+from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor
+from asp_dist.training.row import LOSS_TERMS
+
+CURVE_POINTS = 50  # learning-curve points per cell
+PROBE_EVERY = 5  # every 5th point (10 per cell) also evaluates against the base, cheaply
 
 
 class Trainer:
@@ -42,16 +46,38 @@ class Trainer:
                                            make_optimizer=self.make_optimizer)
         self.sp_state = domain.init_self_play(spec, agents, self.gen) if weights.needs_self_play else {}
         self.step = 0
-        # Diagnostics: mean of each loss term over the last 10 % of training.
+        # Diagnostics: mean of each loss term over the last 10 % of training (the row's loss_*
+        # columns), and a learning curve of CURVE_POINTS points, each the mean over the
+        # updates just before it (a tenth of the interval between points).
         self.window_start = int(0.9 * spec.train_steps)
         self.loss_sums: dict[str, float] = defaultdict(float)
+        self.curve_every = max(1, spec.train_steps // CURVE_POINTS)
+        self.curve_window = max(1, self.curve_every // 10)
+        self.curve_sums: dict[str, float] = defaultdict(float)
+        self.curve: list[dict[str, float]] = []
+        # probe(step) -> metrics: a cheap evaluation against the base, set by run_cell; it draws
+        # from its own generator, so probing never changes what is trained.
+        self.probe: Callable[[int], dict[str, float]] | None = None
 
     def make_optimizer(self, params, lr: float):
         """The optimiser of the new agents and of each discriminator."""
         return torch.optim.Adam(params, lr=lr, **self.domain.optimizer_options)
 
+    def weights_now(self) -> LossWeights:
+        """The loss weights of the current update: λ1 follows lambda_unpaired_schedule."""
+        w = self.weights
+        factor = lambda_factor(self.spec, self.step)
+        return w if factor == 1.0 else LossWeights(w.self_play, w.paired, w.unpaired * factor)
+
+    def recording(self) -> bool:
+        """Whether this update's loss values are recorded (final window or a curve window)."""
+        to_point = (-self.step - 1) % self.curve_every  # updates after this one until the next curve point
+        return self.step >= self.window_start or to_point < self.curve_window
+
     def train_step(self) -> None:
-        spec, w = self.spec, self.weights
+        spec, w = self.spec, self.weights_now()
+        record = self.recording()
+        diagnostics: dict[str, float] | None = {} if record else None
         sp_loss = paired_loss = unpaired_loss = None
         sp_out = None
         if w.needs_self_play:
@@ -63,27 +89,55 @@ class Trainer:
         if self.adversaries is not None:
             fake = sp_out.outputs if sp_out is not None and sp_out.outputs else \
                 self.domain.convention_outputs(spec, self.agents, spec.unpaired_batch, self.gen)
-            real = {ch: u[torch.randint(len(u), (spec.unpaired_batch,), generator=self.gen)]
-                    for ch, u in self.unpaired.items()}
-            disc_loss = self.adversaries.step(real, fake)
+            for k in range(spec.disc_steps):
+                real = {ch: u[torch.randint(len(u), (spec.unpaired_batch,), generator=self.gen)]
+                        for ch, u in self.unpaired.items()}
+                disc_loss = self.adversaries.step(real, fake, diagnostics if k == 0 else None)
             unpaired_loss = self.adversaries.model_loss(fake, spec.adversary_loss)
         total = compose_loss(w, sp_loss, paired_loss, unpaired_loss)
         self.opt.zero_grad(set_to_none=True)
         if total.requires_grad:
             total.backward()
             self.opt.step()
-        if self.step >= self.window_start:
+        if record:
             for name, value in (("self_play", sp_loss), ("paired", paired_loss), ("unpaired", unpaired_loss),
                                 ("disc", disc_loss), ("total", total)):
                 if value is not None:
-                    self.loss_sums[name] += float(value.detach() if torch.is_tensor(value) else value)
-            self.loss_sums["_count"] += 1
+                    diagnostics[name] = float(value.detach() if torch.is_tensor(value) else value)
+            self.record(diagnostics)
         self.step += 1
+        self.finish_curve_point()
+
+    def record(self, values: dict[str, float]) -> None:
+        """Add one recorded update's values to the final window and/or the open curve point."""
+        if self.step >= self.window_start:
+            for name in LOSS_TERMS:
+                if name in values:
+                    self.loss_sums[name] += values[name]
+            self.loss_sums["_count"] += 1
+        if (-self.step - 1) % self.curve_every < self.curve_window:
+            for name, value in values.items():
+                self.curve_sums[name] += value
+            self.curve_sums["_count"] += 1
+
+    def finish_curve_point(self) -> None:
+        """After update `step`, close the curve point that ends there (if one does)."""
+        if self.step % self.curve_every and self.step != self.spec.train_steps:
+            return
+        n = self.curve_sums.pop("_count", 0)
+        # λ1 of the update just before the point.
+        point = {"step": float(self.step),
+                 "lambda_unpaired_now": self.weights.unpaired * lambda_factor(self.spec, self.step - 1)}
+        point.update({f"loss_{k}" if k in LOSS_TERMS else k: v / n for k, v in self.curve_sums.items()} if n else {})
+        index = len(self.curve)
+        if self.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.spec.train_steps):
+            point.update({f"probe_{k}": float(v) for k, v in self.probe(self.step).items()})
+        self.curve.append(point)
+        self.curve_sums.clear()
 
     def loss_columns(self) -> dict[str, float | None]:
         n = self.loss_sums.get("_count", 0)
-        return {f"loss_{k}": (self.loss_sums[k] / n if n and k in self.loss_sums else None)
-                for k in ("self_play", "paired", "unpaired", "disc", "total")}
+        return {f"loss_{k}": (self.loss_sums[k] / n if n and k in self.loss_sums else None) for k in LOSS_TERMS}
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -94,6 +148,8 @@ class Trainer:
             "gen": self.gen.get_state(),
             "sp_state": {k: v.clone() for k, v in self.sp_state.items()},
             "loss_sums": dict(self.loss_sums),
+            "curve_sums": dict(self.curve_sums),
+            "curve": [dict(p) for p in self.curve],
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -105,3 +161,5 @@ class Trainer:
         self.gen.set_state(state["gen"])
         self.sp_state = {k: v.clone() for k, v in state["sp_state"].items()}
         self.loss_sums = defaultdict(float, state["loss_sums"])
+        self.curve_sums = defaultdict(float, state.get("curve_sums", {}))
+        self.curve = [dict(p) for p in state.get("curve", [])]

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, critic_features, env_step, spawn
+from asp_dist.training.adversary import disc_diagnostics
 from asp_dist.training.fast.flat_adam import FlatAdam
 from asp_dist.training.trainer import Trainer
 
@@ -96,6 +97,13 @@ class FusedParticleTrainer(Trainer):
     """Trainer with the same construction, checkpoints and loss diagnostics as the generic one,
     whose train_step is the hand-derived update described in the module docstring."""
 
+    @classmethod
+    def supports(cls, spec) -> bool:
+        """The hand-derived update implements today's particle update only: the knobs added for
+        the reproduction study run on the reference trainer."""
+        return (spec.lambda_unpaired_schedule == "constant" and spec.disc_steps == 1
+                and spec.particles_replay_size == 0 and spec.particles_paired_listener)
+
     def make_optimizer(self, params, lr: float) -> FlatAdam:
         return FlatAdam(params, lr=lr)
 
@@ -133,13 +141,14 @@ class FusedParticleTrainer(Trainer):
     def train_step(self) -> None:
         spec, w = self.spec, self.weights
         n, B, K = self.n_paired, spec.batch_size, spec.particles_rollout_len
-        record = self.step >= self.window_start
+        record = self.recording()
         losses: dict[str, float] = {}
         if not w.needs_self_play and not n:
             # PC with no paired data: nothing to learn (the reference takes no optimiser step).
             if record:
                 self.record({"total": 0.0})
             self.step += 1
+            self.finish_curve_point()
             return
 
         # ---- 1. forward: rollout rows (B per step) with the paired rows after step 0's ----------
@@ -205,6 +214,7 @@ class FusedParticleTrainer(Trainer):
                                + w.unpaired * losses.get("unpaired", 0.0))
             self.record(losses)
         self.step += 1
+        self.finish_curve_point()
 
     def rollout(self, n: int) -> "Rollout":
         """particles.a2c_update's rollout and returns, without a graph; the paired rows join step 0."""
@@ -259,6 +269,7 @@ class FusedParticleTrainer(Trainer):
         if losses is not None:
             losses["disc"] = float(F.binary_cross_entropy_with_logits(logits, self.disc_labels, reduction="none")
                                    .mul(self.disc_scale).sum())
+            losses.update(disc_diagnostics(logits[:len(real)], logits[len(real):]))
         self.disc_opt.step()
         logits, inputs = self.disc.forward(fake)
         sig = torch.sigmoid(logits)
@@ -271,11 +282,6 @@ class FusedParticleTrainer(Trainer):
             if losses is not None:
                 losses["unpaired"] = float(F.softplus(-logits).mean())
         return self.disc.backward(dlogits, inputs, params=False, input_grad=True)
-
-    def record(self, losses: dict[str, float]) -> None:
-        for name, value in losses.items():
-            self.loss_sums[name] += value
-        self.loss_sums["_count"] += 1
 
     @staticmethod
     def _rows(t: torch.Tensor, rows: list[slice]) -> torch.Tensor:
