@@ -18,6 +18,14 @@ def rerun() -> pd.DataFrame:
     return run_golden_rows()
 
 
+def test_columns_added_since_are_neutral_knobs(rerun):
+    from asp_dist.spec import HASH_NEUTRAL
+
+    for column in sorted(set(rerun.columns) - set(RECORDED.columns)):
+        assert column in HASH_NEUTRAL, f"new row column {column} is not a hash-neutral knob"
+        assert (rerun[column] == HASH_NEUTRAL[column]).all(), f"{column} is not at its neutral value"
+
+
 def test_same_cells_same_rows(rerun):
     assert list(rerun["cell_id"]) == list(RECORDED["cell_id"]), "cell ids changed: a spec field or hash moved"
     # The recorded floats are bit-exact on the CPU they were recorded on; another SIMD kernel

@@ -160,6 +160,45 @@ def a2c_update(spec: CellSpec, agents: ParticleAgents, state: Tensors, target: t
     return SelfPlayOut(loss=loss, outputs={"message": messages[0] if K == 1 else torch.cat(messages)})
 
 
+def replay_a2c_update(spec: CellSpec, agents: ParticleAgents, state: Tensors, target: torch.Tensor,
+                      gen: torch.Generator) -> SelfPlayOut:
+    """The paper's "batches of size 8 sampled uniformly from the experience replay buffer":
+    advance the batch_size envs one step with the current policy, push those transitions into a
+    FIFO of the last particles_replay_size, and return the one-step actor-critic loss of a
+    uniform batch of it, re-spoken by the current speaker (so the message, and the
+    discriminator's fakes, come from the buffer's states). The stored action's log-probability
+    is taken under the current policy without importance weights, as a plain replay A2C does."""
+    T, B, N = spec.particles_episode_len, spec.batch_size, spec.particles_replay_size
+    with torch.no_grad():
+        pos, t = state["pos"], state["t"]
+        a = sample_actions(agents.listen(agents.speak(pos)), gen)
+        feats = critic_features(pos, t, T)
+        new_pos, r = env_step(pos, a, target)
+        t_next = t + 1
+        done = t_next >= T
+        next_feats = critic_features(new_pos, t_next.clamp(max=T), T)
+        if bool(done.any()):
+            new_pos = torch.where(done.unsqueeze(1), spawn(B, gen), new_pos)
+            t_next = t_next.masked_fill(done, 0)
+        state["pos"], state["t"] = new_pos, t_next
+        slots = (state["replay_head"] + torch.arange(B)) % N
+        state["replay_pos"][slots], state["replay_feats"][slots], state["replay_next"][slots] = pos, feats, next_feats
+        state["replay_action"][slots], state["replay_reward"][slots] = a, r
+        state["replay_done"][slots] = done
+        state["replay_head"] = (state["replay_head"] + B) % N
+        state["replay_count"] = torch.clamp(state["replay_count"] + B, max=N)
+        idx = torch.randint(int(state["replay_count"]), (B,), generator=gen)
+        bootstrap = agents.value(state["replay_next"][idx]).masked_fill(state["replay_done"][idx], 0.0)
+        returns = state["replay_reward"][idx] * REWARD_SCALE + spec.particles_gamma * bootstrap
+    msg = agents.speak(state["replay_pos"][idx])
+    logp = agents.listen(msg).log_softmax(-1)
+    values = agents.value(state["replay_feats"][idx])
+    td = returns - values
+    loss = (-logp.gather(1, state["replay_action"][idx].view(-1, 1)).view(-1) * td.detach()
+            + spec.particles_value_coef * td.pow(2) + spec.particles_entropy * (logp.exp() * logp).sum(-1)).mean()
+    return SelfPlayOut(loss=loss, outputs={"message": msg}, info={"reward": float(r.mean())})
+
+
 @torch.no_grad()
 def play(speakers: list[ParticleAgents], listeners: list[ParticleAgents], episodes: int, T: int,
          target: torch.Tensor, gen: torch.Generator) -> list[float]:
@@ -275,14 +314,24 @@ class ParticlesDomain(Domain):
         # The target rides along in the state so the hot loop never re-derives it.
         # Envs start staggered over the episode so that every batch mixes episode phases.
         B, T = spec.batch_size, spec.particles_episode_len
-        return {"pos": spawn(B, gen), "t": torch.arange(B) * T // B, "target": target_for(spec)}
+        state = {"pos": spawn(B, gen), "t": torch.arange(B) * T // B, "target": target_for(spec)}
+        N = spec.particles_replay_size
+        if N:
+            state.update(replay_pos=torch.zeros(N, 2), replay_feats=torch.zeros(N, 3), replay_next=torch.zeros(N, 3),
+                         replay_action=torch.zeros(N, dtype=torch.long), replay_reward=torch.zeros(N),
+                         replay_done=torch.zeros(N, dtype=torch.bool), replay_head=torch.tensor(0),
+                         replay_count=torch.tensor(0))
+        return state
 
     def self_play_step(self, spec, agents, state, gen):
-        return a2c_update(spec, agents, state, state["target"], gen)
+        update = replay_a2c_update if spec.particles_replay_size else a2c_update
+        return update(spec, agents, state, state["target"], gen)
 
     def paired_loss(self, spec, agents, paired):
-        return (F.mse_loss(agents.speak(paired["state"]), paired["message"])
-                + F.cross_entropy(agents.listen(paired["message"]), paired["action"]))
+        speaker = F.mse_loss(agents.speak(paired["state"]), paired["message"])
+        if not spec.particles_paired_listener:
+            return speaker
+        return speaker + F.cross_entropy(agents.listen(paired["message"]), paired["action"])
 
     def convention_outputs(self, spec, agents, n, gen):
         """Messages on the agents' own state distribution: one uniform step of each of n episodes."""

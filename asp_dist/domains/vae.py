@@ -56,15 +56,26 @@ class VAE(nn.Module):
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.decoder(z))
 
-    def vae_loss(self, x: torch.Tensor, gen: torch.Generator, kl_weight: float) -> tuple[torch.Tensor, torch.Tensor, dict]:
-        """Negative ELBO per image (Bernoulli decoder, as in the Keras VAE the paper builds on):
-        summed binary cross-entropy over pixels + kl_weight · KL(q(z|x) || N(0, I)). Returns
-        (loss, μ, info)."""
+    def vae_loss(self, x: torch.Tensor, gen: torch.Generator, kl_weight: float,
+                 recon_loss: str = "bce") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        """Loss per image: the reconstruction term summed over pixels — binary cross-entropy
+        (Bernoulli decoder, as in the Keras VAE the paper builds on) or squared error (the
+        paper's "often the mean squared error") — plus kl_weight · KL(q(z|x) || N(0, I)).
+        Returns (loss, μ, the sampled z, info)."""
         mu, logvar = self.encode(x)
         z = mu + torch.exp(0.5 * logvar) * torch.randn(mu.shape, generator=gen)
-        recon = F.binary_cross_entropy_with_logits(self.decoder(z), x, reduction="sum") / len(x)
+        logits = self.decoder(z)
+        if recon_loss == "bce":
+            recon = F.binary_cross_entropy_with_logits(logits, x, reduction="sum") / len(x)
+        else:
+            recon = (torch.sigmoid(logits) - x).pow(2).sum() / len(x)
         kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).mean()
-        return recon + kl_weight * kl, mu, {"recon": float(recon.detach()), "kl": float(kl.detach())}
+        return recon + kl_weight * kl, mu, z, {"recon": float(recon.detach()), "kl": float(kl.detach())}
+
+    def code(self, x: torch.Tensor, what: str, gen: torch.Generator) -> torch.Tensor:
+        """What an adversary sees of x: the mean encoding μ, or a sampled code z ~ q(z|x)."""
+        mu, logvar = self.encode(x)
+        return mu if what == "mu" else mu + torch.exp(0.5 * logvar) * torch.randn(mu.shape, generator=gen)
 
 
 def as_float(images: torch.Tensor) -> torch.Tensor:
@@ -147,7 +158,7 @@ class VAEDomain(Domain):
         report_every = max(1, steps // 100)
         for step in range(steps):
             x = as_float(images[torch.randint(len(images), (spec.vae_base_batch,), generator=gen)])
-            loss, _, _ = base.vae_loss(x, gen, spec.vae_kl_weight)
+            loss, _, _, _ = base.vae_loss(x, gen, spec.vae_kl_weight, spec.vae_recon_loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -175,7 +186,7 @@ class VAEDomain(Domain):
         images = self.train_images(spec)
         x = as_float(images[self.sample_indices(len(images), size, gen)])
         with torch.no_grad():
-            return {"latent": base.encode(x)[0]}
+            return {"latent": base.code(x, spec.vae_adversary_input, gen)}
 
     # ---- the new agents ---------------------------------------------------------------------------
     def new_agents(self, spec, seed):
@@ -184,18 +195,19 @@ class VAEDomain(Domain):
     def self_play_step(self, spec, agents, state, gen):
         images = self.train_images(spec)
         x = as_float(images[torch.randint(len(images), (spec.batch_size,), generator=gen)])
-        loss, mu, info = agents.vae_loss(x, gen, spec.vae_kl_weight)
-        return SelfPlayOut(loss=loss, outputs={"latent": mu}, info=info)
+        loss, mu, z, info = agents.vae_loss(x, gen, spec.vae_kl_weight, spec.vae_recon_loss)
+        return SelfPlayOut(loss=loss, outputs={"latent": mu if spec.vae_adversary_input == "mu" else z}, info=info)
 
     def paired_loss(self, spec, agents, paired):
-        encoder_error = (agents.encode(paired["image"])[0] - paired["encoding"]).pow(2).sum(-1).mean()
-        decoder_error = (agents.decode(paired["encoding"]) - paired["recon"]).pow(2).sum(-1).mean()
+        reduce = (lambda e: e.sum(-1).mean()) if spec.vae_paired_reduction == "sum" else (lambda e: e.mean())
+        encoder_error = reduce((agents.encode(paired["image"])[0] - paired["encoding"]).pow(2))
+        decoder_error = reduce((agents.decode(paired["encoding"]) - paired["recon"]).pow(2))
         return encoder_error + decoder_error
 
     def convention_outputs(self, spec, agents, n, gen):
         images = self.train_images(spec)
         x = as_float(images[torch.randint(len(images), (n,), generator=gen)])
-        return {"latent": agents.encode(x)[0]}
+        return {"latent": agents.code(x, spec.vae_adversary_input, gen)}
 
     # ---- evaluation -------------------------------------------------------------------------------
     def evaluate(self, spec, base, agents, gen):

@@ -1,0 +1,104 @@
+"""The reproduction study's knobs: neutral values change nothing, other values do what they say."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from asp_dist.domains import get_domain
+from asp_dist.errors import SpecError
+from asp_dist.spec import HASH_NEUTRAL, CellSpec
+from asp_dist.training import bases
+from asp_dist.training.cell import run_cell
+from asp_dist.training.methods import lambda_factor
+from asp_dist.training.row import comparable
+
+
+@pytest.mark.parametrize("knob", sorted(HASH_NEUTRAL))
+def test_a_knob_at_its_neutral_value_keeps_every_id(knob):
+    spec = CellSpec(domain="particles", trial=7).resolved()
+    explicit = spec.replace(**{knob: HASH_NEUTRAL[knob]})
+    assert (explicit.cell_id, explicit.base_key, explicit.seed_for("train")) == \
+        (spec.cell_id, spec.base_key, spec.seed_for("train"))
+
+
+def test_new_agent_knobs_share_the_base_and_base_knobs_do_not():
+    spec = CellSpec(domain="vae", trial=7).resolved()
+    assert spec.replace(vae_adversary_input="z").base_key == spec.base_key
+    assert spec.replace(vae_paired_reduction="mean").base_key == spec.base_key
+    assert spec.replace(vae_recon_loss="mse").base_key != spec.base_key
+    assert spec.replace(base_steps_growth=1.5).base_key != spec.base_key
+    p = CellSpec(domain="particles", trial=7).resolved()
+    assert p.replace(particles_replay_size=1000, particles_paired_listener=False).base_key == p.base_key
+    assert p.replace(particles_replay_size=1000).cell_id != p.cell_id
+
+
+@pytest.mark.parametrize("changes, needle", [
+    (dict(lambda_unpaired_schedule="cosine"), "lambda_unpaired_schedule must be one of"),
+    (dict(lambda_schedule_frac=0.0), "lambda_schedule_frac must be in"),
+    (dict(disc_steps=0), "disc_steps must be >= 1"),
+    (dict(base_steps_growth=0.0), "base_steps_growth must be > 0"),
+    (dict(domain="vae", vae_recon_loss="l1"), "vae_recon_loss must be one of"),
+    (dict(domain="vae", vae_adversary_input="x"), "vae_adversary_input must be one of"),
+])
+def test_bad_knob_values_are_refused(changes, needle):
+    with pytest.raises(SpecError, match=needle):
+        CellSpec(**{"domain": "particles", **changes}).resolved()
+
+
+def test_lambda_schedules():
+    spec = CellSpec(domain="signaling", train_steps=100, lambda_schedule_frac=0.5).resolved()
+    assert [lambda_factor(spec, s) for s in (0, 50, 99)] == [1.0, 1.0, 1.0]
+    warm = spec.replace(lambda_unpaired_schedule="warmup")
+    assert [lambda_factor(warm, s) for s in (0, 25, 50, 80)] == [0.0, 0.5, 1.0, 1.0]
+    anneal = spec.replace(lambda_unpaired_schedule="anneal")
+    assert [lambda_factor(anneal, s) for s in (0, 25, 50, 80)] == [1.0, 0.5, 0.0, 0.0]
+
+
+def test_base_retries_escalate_the_budget(monkeypatch, tiny):
+    spec = tiny("particles", particles_accept_return=1e9, base_max_attempts=3, base_steps_growth=2.0).resolved()
+    domain = get_domain("particles")
+    seen = []
+    monkeypatch.setattr(domain, "train_base", lambda s, seed, progress=None: (seen.append(s.base_train_steps), (None, 0.0))[1])
+    with pytest.raises(bases.BaseRejected):
+        bases.train_accepted_base(spec)
+    assert seen == [30, 60, 120]
+
+
+def test_paired_loss_without_the_listener_term_is_the_speaker_mse(tiny):
+    spec = tiny("particles", paired=4).resolved()
+    domain = get_domain("particles")
+    base = domain.new_agents(spec, 1)
+    paired = domain.paired(spec, base, 4, torch.Generator().manual_seed(0))
+    agents = domain.new_agents(spec, 2)
+    speaker_only = domain.paired_loss(spec.replace(particles_paired_listener=False), agents, paired)
+    assert speaker_only == torch.nn.functional.mse_loss(agents.speak(paired["state"]), paired["message"])
+    assert domain.paired_loss(spec, agents, paired) > speaker_only
+
+
+def test_vae_paired_mean_is_the_sum_over_its_widths(tiny):
+    spec = tiny("vae", paired=4).resolved()
+    domain = get_domain("vae")
+    base = domain.new_agents(spec, 1)
+    paired = domain.paired(spec, base, 4, torch.Generator().manual_seed(0))
+    agents = domain.new_agents(spec, 2)
+    enc = (agents.encode(paired["image"])[0] - paired["encoding"]).pow(2)
+    dec = (agents.decode(paired["encoding"]) - paired["recon"]).pow(2)
+    mean = domain.paired_loss(spec.replace(vae_paired_reduction="mean"), agents, paired)
+    assert float(mean.detach()) == pytest.approx(float(enc.mean() + dec.mean()))
+
+
+@pytest.mark.parametrize("name, changes", [
+    ("particles", dict(particles_replay_size=64)),
+    ("particles", dict(disc_steps=2, lambda_unpaired_schedule="warmup")),
+    ("vae", dict(vae_adversary_input="z", vae_recon_loss="mse")),
+])
+def test_non_default_knobs_run_deterministically_and_restore(name, changes, tiny):
+    spec = tiny(name, method="asp", paired=2, train_steps=40, **changes)
+    states = []
+    row = run_cell(spec, checkpoint=lambda s: states.append(copy.deepcopy(s)), checkpoint_every_steps=17)
+    assert comparable(run_cell(spec)) == comparable(row)
+    assert comparable(run_cell(spec, restore=states[0])) == comparable(row)
+    assert comparable(row) != comparable(run_cell(tiny(name, method="asp", paired=2, train_steps=40)))
