@@ -1,7 +1,13 @@
-"""How good can a VAE base get? Trains bases only and prints their test MSE (the paper: 0.006).
+"""Bases only: how good do they get, and does every trial get one? (docs/reproduction.md)
 
-    python bench/vae_base_quality.py --trials 100,101 --set base_train_steps=5000,20000 \
+    python bench/base_quality.py --domain vae --trials 100,101 --set base_train_steps=5000,20000 \
         --set vae_kl_weight=1.0,0.5 --out results/calibration/vae_bases.csv
+    python bench/base_quality.py --domain particles --trials 100-199 --set base_steps_growth=1.5 \
+        --out results/calibration/particle_bases.csv
+
+Each base goes through the same acceptance loop as a sweep's (train_accepted_base: retries
+with the next seed, budget growing by base_steps_growth); a trial with no accepted base is a
+row with accepted = False.
 
 Each --set KEY=V1,V2,… is an axis; every combination runs on every trial. Trials are
 calibration ids (100–199): nothing here touches a confirmatory trial. Rows are appended to
@@ -22,30 +28,38 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 
 from asp_dist.cli import parse_overrides  # noqa: E402
-from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
+from asp_dist.training.bases import BaseRejected, train_accepted_base  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--trials", default="100")
+    ap.add_argument("--domain", default="vae")
+    ap.add_argument("--trials", default="100", help="comma list or FIRST-LAST")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=V1,V2")
     ap.add_argument("--out", type=Path, default=Path("results/calibration/vae_bases.csv"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     axes = {k: str(v).split(",") for k, v in (item.split("=", 1) for item in args.set)}
-    domain = get_domain("vae")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     new_file = not args.out.exists()
     with args.out.open("a", newline="") as fh:
         writer = None
-        for trial in (int(t) for t in args.trials.split(",")):
+        first, _, last = args.trials.partition("-")
+        trials = range(int(first), int(last) + 1) if last else [int(t) for t in args.trials.split(",")]
+        for trial in trials:
             for combo in itertools.product(*axes.values()):
                 knobs = parse_overrides([f"{k}={v}" for k, v in zip(axes, combo)])
-                spec = CellSpec(domain="vae", trial=trial, **knobs).resolved()
+                spec = CellSpec(domain=args.domain, trial=trial, **knobs).resolved()
                 wall, cpu = time.perf_counter(), time.process_time()
-                _, mse = domain.train_base(spec, spec.seed_for("base"))
-                row = {"trial": trial, **knobs, "test_mse": round(float(mse), 6),
+                try:
+                    base = train_accepted_base(spec)
+                    accepted, score, attempts, scores = True, base.score, base.attempts, base.attempt_scores
+                except BaseRejected as e:
+                    accepted, score, attempts, scores = False, None, spec.base_max_attempts, str(e)
+                row = {"domain": args.domain, "trial": trial, **knobs, "accepted": accepted,
+                       "score": None if score is None else round(float(score), 6), "attempts": attempts,
+                       "attempt_scores": str([round(x, 4) for x in scores]) if accepted else scores,
                        "wall_s": round(time.perf_counter() - wall, 1), "cpu_s": round(time.process_time() - cpu, 1)}
                 print(row, flush=True)
                 if writer is None:
