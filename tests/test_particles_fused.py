@@ -41,6 +41,9 @@ def flat_grad(module: torch.nn.Module) -> torch.Tensor:
     dict(method="asp", paired=3, adversary_loss="non_saturating"),
     dict(method="asp", paired=2, particles_rollout_len=3),
     dict(method="asp", paired=2, disc_layers=2, unpaired_batch=5),
+    dict(method="asp", paired=2, disc_steps=3, unpaired_batch=6),
+    dict(method="asp", paired=3, lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5, train_steps=8),
+    dict(method="asp", paired=3, lambda_unpaired_schedule="anneal", lambda_schedule_frac=0.5, train_steps=8),
 ], ids=lambda c: "-".join(f"{k}={v}" for k, v in c.items()))
 def test_fused_update_equals_autograd(changes):
     ref, fused = trainer_pair(**changes)

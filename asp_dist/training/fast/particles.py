@@ -99,10 +99,9 @@ class FusedParticleTrainer(Trainer):
 
     @classmethod
     def supports(cls, spec) -> bool:
-        """The hand-derived update implements today's particle update only: the knobs added for
-        the reproduction study run on the reference trainer."""
-        return (spec.lambda_unpaired_schedule == "constant" and spec.disc_steps == 1
-                and spec.particles_replay_size == 0 and spec.particles_paired_listener)
+        """The hand-derived update implements the on-policy update with the listener term in the
+        paired loss; the replay buffer and the speaker-only paired loss run on the reference trainer."""
+        return spec.particles_replay_size == 0 and spec.particles_paired_listener
 
     def make_optimizer(self, params, lr: float) -> FlatAdam:
         return FlatAdam(params, lr=lr)
@@ -139,7 +138,7 @@ class FusedParticleTrainer(Trainer):
 
     @torch.no_grad()
     def train_step(self) -> None:
-        spec, w = self.spec, self.weights
+        spec, w = self.spec, self.weights_now()
         n, B, K = self.n_paired, spec.batch_size, spec.particles_rollout_len
         record = self.recording()
         losses: dict[str, float] = {}
@@ -193,8 +192,7 @@ class FusedParticleTrainer(Trainer):
         # ---- 2. ASP: discriminator step, then the model's adversarial gradient -------------------
         if self.disc is not None:
             fake = self._rows(m, sp_rows)
-            real = self.real[torch.randint(len(self.real), (spec.unpaired_batch,), generator=self.gen)]
-            d_adv = self.adversarial_grad(real, fake, losses if record else None)
+            d_adv = self.adversarial_grad(fake, w, losses if record else None)
             for rows, part in zip(sp_rows, (d_adv[:B], d_adv[B:])):
                 if rows.stop > rows.start:
                     dm[rows] += part
@@ -259,18 +257,21 @@ class FusedParticleTrainer(Trainer):
         return Rollout(cat(spk_x), cat(spk_h), cat(spk_m), cat(lis_in), cat(lis_h), cat(lis_logp), cat(acts),
                        values[:K * B], cat(returns[::-1]), feats[:K * B], hc[:K * B])
 
-    def adversarial_grad(self, real: torch.Tensor, fake: torch.Tensor, losses: dict | None) -> torch.Tensor:
-        """One BCE step of the discriminator (real = 1, fake = 0), then λ1·d(L_u)/d(fake) through
-        the updated discriminator."""
-        spec, w = self.spec, self.weights
-        logits, inputs = self.disc.forward(torch.cat([real, fake]))
-        self.disc.backward((torch.sigmoid(logits) - self.disc_labels) * self.disc_scale, inputs, params=True,
-                           input_grad=False)
-        if losses is not None:
-            losses["disc"] = float(F.binary_cross_entropy_with_logits(logits, self.disc_labels, reduction="none")
-                                   .mul(self.disc_scale).sum())
-            losses.update(disc_diagnostics(logits[:len(real)], logits[len(real):]))
-        self.disc_opt.step()
+    def adversarial_grad(self, fake: torch.Tensor, w, losses: dict | None) -> torch.Tensor:
+        """disc_steps BCE steps of the discriminator (real = 1: a fresh batch of U each, fake = 0),
+        then λ1·d(L_u)/d(fake) through the updated discriminator."""
+        spec = self.spec
+        for k in range(spec.disc_steps):
+            real = self.real[torch.randint(len(self.real), (spec.unpaired_batch,), generator=self.gen)]
+            logits, inputs = self.disc.forward(torch.cat([real, fake]))
+            self.disc.backward((torch.sigmoid(logits) - self.disc_labels) * self.disc_scale, inputs, params=True,
+                               input_grad=False)
+            if losses is not None:  # as the reference: the last step's loss, the first step's accuracies
+                losses["disc"] = float(F.binary_cross_entropy_with_logits(logits, self.disc_labels, reduction="none")
+                                       .mul(self.disc_scale).sum())
+                if k == 0:
+                    losses.update(disc_diagnostics(logits[:len(real)], logits[len(real):]))
+            self.disc_opt.step()
         logits, inputs = self.disc.forward(fake)
         sig = torch.sigmoid(logits)
         if spec.adversary_loss == "neg_bce":  # L_u = -BCE(D(fake), 0) = -mean softplus(logit)
