@@ -1,27 +1,36 @@
-"""`asp-dist` command line: cells, theory, spec fields, and (when installed) sweeps and stats.
+"""`asp-dist`: run one cell, the theory, cell fields, sweeps (sweep, resume, status) and their results (stats, query).
 
-User mistakes end with one line on stderr, `asp-dist: error: ...`, and exit code 2; nothing
-already written is touched.
+Every user mistake ends the same way: one line on stderr, `asp-dist: error: ...`, exit code 2,
+and nothing already written touched. Commands raise asp_dist.errors.SpecError (or a subclass)
+for it and `main` prints it. Heavy imports (torch, Ray, the analysis) happen inside the command
+that needs them, so `--help`, `status` and input errors stay fast.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import math
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec, SpecError, coerce_field
+from asp_dist.errors import SpecError
+from asp_dist.results import store
+from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec, coerce_field
 
-# Modules that add their own subcommands through register(subparsers).
-PLUGINS = ("asp_dist.cli_sweep", "asp_dist.cli_stats")
+
+class Parser(argparse.ArgumentParser):
+    """argparse's own errors in the same one-line form as every other user error."""
+
+    def error(self, message: str):
+        self.exit(2, f"asp-dist: error: {message} (see `{self.prog} --help`)\n")
 
 
+# ---- cell, theory, fields -----------------------------------------------------------------------
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in items:
@@ -32,8 +41,9 @@ def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     return out
 
 
-class StderrProgress:
-    """A one-line progress display for a single cell, redrawn in place on a terminal."""
+class CellProgressPrinter:
+    """Prints one cell's ProgressFn calls on stderr: one line redrawn in place on a terminal, a line
+    every 10 s in a log."""
 
     def __init__(self, cell_id: str, stream=sys.stderr):
         self.cell_id, self.stream, self.start = cell_id, stream, time.monotonic()
@@ -43,11 +53,10 @@ class StderrProgress:
     def __call__(self, phase: str, done: int, total: int, info: dict) -> None:
         now = time.monotonic()
         if not self.tty and done != total and now - self.last_line < 10:
-            return  # in logs, a line every 10 s is enough
+            return
         self.last_line = now
-        elapsed = now - self.start
         pct = 100.0 * done / max(total, 1)
-        text = f"{self.cell_id} {phase} {done}/{total} ({pct:3.0f}%) {elapsed:6.1f}s"
+        text = f"{self.cell_id} {phase} {done}/{total} ({pct:3.0f}%) {now - self.start:6.1f}s"
         if self.tty:
             self.stream.write("\r" + text.ljust(78) + ("\n" if phase == "eval" else ""))
         else:
@@ -73,8 +82,7 @@ def cmd_cell(args: argparse.Namespace) -> int:
             raise SpecError(f"directory {out.parent} does not exist")
         if not os.access(out.parent, os.W_OK):
             raise SpecError(f"directory {out.parent} is not writable")
-    progress = None if args.quiet else StderrProgress(spec.cell_id)
-    row = run_cell(spec, progress=progress)
+    row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
     if out is not None:
         write_single_row(row, out)
         print(f"wrote {out}", file=sys.stderr)
@@ -83,7 +91,7 @@ def cmd_cell(args: argparse.Namespace) -> int:
 
 
 def write_single_row(row: dict[str, Any], out: Path) -> None:
-    """One row to a new Parquet file with the sweep store's pinned schema, written atomically."""
+    """One row to a new Parquet file with the store's pinned schema, written atomically."""
     from asp_dist.fsutil import write_table_once
     from asp_dist.training.row import row_table
 
@@ -121,22 +129,194 @@ def cmd_theory(args: argparse.Namespace) -> int:
 
 
 def cmd_fields(args: argparse.Namespace) -> int:
-    from asp_dist.domains import get_domain
+    from asp_dist.domains import DOMAINS, get_domain
 
-    defaults = {}
-    if args.domain:
-        defaults = get_domain(args.domain).defaults
+    defaults = get_domain(args.domain).defaults if args.domain else {}
+    domain_prefixes = tuple(f"{name}_" for name in DOMAINS)  # a domain's own knobs are named <domain>_*
     for name in FIELD_NAMES:
-        if args.domain and name.split("_")[0] in ("signaling", "particles", "vae", "levers") \
-                and not name.startswith(args.domain + "_"):
+        if args.domain and name.startswith(domain_prefixes) and not name.startswith(f"{args.domain}_"):
             continue
         value = defaults.get(name, getattr(CellSpec(), name))
         print(f"{name:26s} {str(value):>10s}  {FIELD_DOCS[name]}")
     return 0
 
 
+# ---- sweep, resume, status ----------------------------------------------------------------------
+def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    return dict(results=args.results, workers=args.workers, address=args.address, max_failures=args.max_failures,
+                checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir)
+
+
+def _finish(result) -> int:
+    """What a sweep left, and the commands that read it; exit 1 unless every cell finished."""
+    cells = store.cells_dir(result.sweep_dir)
+    print(f"{result.done}/{result.total} cells done, {result.failed} failed; rows in {cells}")
+    print(f"  stats, figures and report: asp-dist stats {result.sweep_dir}")
+    print(f"  query: asp-dist query {result.sweep_dir} --where \"method = 'asp'\" --columns paired,trial,eval_mixed")
+    print(f"  read: python -c \"from asp_dist.results.store import read_rows; print(read_rows('{result.sweep_dir}'))\"")
+    print(f"   or: duckdb -c \"select method, paired, median(eval_mixed) from read_parquet('{cells}/**/*.parquet') "
+          f"group by all order by all\"")
+    if result.failed:
+        print(f"  failed cells: asp-dist status {result.name} --results {result.sweep_dir.parent}", file=sys.stderr)
+    return 0 if result.failed == 0 and result.done == result.total else 1
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from asp_dist.sweep.ledger import check_run_options, sweep_dir_for
+    from asp_dist.sweep.spaces import expand, space_file
+
+    # Everything a user can get wrong is refused before paying for the Ray import.
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
+    expand(args.space)
+    sweep_dir_for(args.results, args.name or space_file(args.space).stem)
+    from asp_dist.sweep.tune import run_sweep
+
+    return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    from asp_dist.sweep.ledger import check_run_options, read_sweep
+
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
+    read_sweep(args.results, args.name)  # an unknown sweep too is refused before the Ray import
+    from asp_dist.sweep.tune import resume_sweep
+
+    return _finish(resume_sweep(args.name, **_run_kwargs(args)))
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from asp_dist.sweep.ledger import sweep_status
+
+    print(sweep_status(args.name, args.results))
+    return 0
+
+
+# ---- stats, query -------------------------------------------------------------------------------
+def parse_ranges(items: Sequence[str]) -> dict[str, tuple[int, int] | None]:
+    """--paired-range DOMAIN=LO-HI|all over the paper's ranges."""
+    from asp_dist.analysis import paper_paired_ranges
+
+    ranges: dict[str, tuple[int, int] | None] = dict(paper_paired_ranges())
+    for item in items or ():
+        domain, sep, value = item.partition("=")
+        try:
+            if not sep or not domain:
+                raise ValueError
+            if value == "all":
+                ranges[domain] = None
+                continue
+            lo, _, hi = value.partition("-")
+            lo_i, hi_i = int(lo), int(hi or lo)
+            if lo_i > hi_i or lo_i < 0:
+                raise ValueError
+        except ValueError:
+            raise SpecError(f"--paired-range {item!r}: write DOMAIN=LO-HI (e.g. particles=2-4) or DOMAIN=all") from None
+        ranges[domain] = (lo_i, hi_i)
+    return ranges
+
+
+def parse_thresholds(items: Sequence[str]) -> dict[str, float]:
+    out = {}
+    for item in items or ():
+        domain, sep, value = item.partition("=")
+        try:
+            if not sep or not domain:
+                raise ValueError
+            out[domain] = float(value)
+        except ValueError:
+            raise SpecError(f"--threshold {item!r}: write DOMAIN=VALUE (e.g. signaling=0.75)") from None
+    return out
+
+
+def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
+    """--out, or the one sweep (or directory) given; the stats job never guesses among several inputs."""
+    if out:
+        path = Path(out)
+    elif len(inputs) == 1 and inputs[0].is_dir():
+        path = inputs[0]
+    else:
+        raise SpecError("several inputs or single files: say where to write the stats with --out DIR")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SpecError(f"cannot create the output directory {path} ({e.strerror or e})") from None
+    if not os.access(path, os.W_OK):
+        raise SpecError(f"output directory {path} is not writable; choose another with --out")
+    return path
+
+
+def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None, figures: bool = True,
+                  results: str | Path = store.DEFAULT_RESULTS, command: str = "", log=print) -> Path:
+    """The whole stats job: read rows, compute tables, write stats/, figures/ and report.md. Returns report.md."""
+    from asp_dist.analysis import plot_all, run_stats, write_report, write_tables
+    from asp_dist.results.query import find_inputs
+
+    find_inputs(sweeps, results)  # a missing or empty input is the first thing to report
+    located = [store.locate_sweep(s, results) for s in sweeps]
+    out_dir = stats_output_dir(located, out)
+    start = time.perf_counter()
+    result = run_stats(located, cfg)
+    log(f"read and analysed {len(result.rows)} rows from {len(result.inputs.files)} files "
+        f"({', '.join(sorted(result.layouts))}) in {time.perf_counter() - start:.1f} s")
+    written = write_tables(result, out_dir)
+    log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
+    figs, notes = plot_all(result, out_dir / "figures") if figures else ([], [])
+    if figures:
+        log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
+    report = write_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command)
+    for note in result.notes + notes:
+        log(f"note: {note}")
+    log(f"report: {report} ({time.perf_counter() - start:.1f} s in all)")
+    return report
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    from asp_dist.analysis import StatsConfig
+
+    if args.bootstrap < 100:
+        raise SpecError("--bootstrap must be at least 100 resamples")
+    if not 0 < args.alpha < 1:
+        raise SpecError("--alpha must be between 0 and 1")
+    cfg = StatsConfig(metric=args.metric, paired_ranges=parse_ranges(args.paired_range),
+                      thresholds=parse_thresholds(args.threshold), alpha=args.alpha, n_boot=args.bootstrap,
+                      seed=args.seed)
+    run_stats_job(args.sweeps, args.out, cfg, figures=not args.no_figures, results=args.results,
+                  command="asp-dist " + shlex.join(args.argv),
+                  log=(lambda *a: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)))
+    return 0
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    from asp_dist.results.query import run_query, write_result
+
+    columns = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
+    df = run_query(args.sweeps, where=args.where, columns=columns, sql=args.sql, limit=args.limit,
+                   results=args.results)
+    write_result(df, args.format, args.out)
+    if args.out:
+        print(f"{len(df)} rows -> {args.out}", file=sys.stderr)
+    return 0
+
+
+# ---- the parser ---------------------------------------------------------------------------------
+def _add_results(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--results", default=store.DEFAULT_RESULTS, metavar="DIR",
+                   help=f"results root; sweep NAME lives in DIR/NAME (default: {store.DEFAULT_RESULTS})")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=int, default=2, help="concurrent cells, 1 CPU each (default 2)")
+    p.add_argument("--address", default=None,
+                   help="join an existing Ray cluster (e.g. 127.0.0.1:6379) instead of starting an embedded one")
+    _add_results(p)
+    p.add_argument("--max-failures", type=int, default=2, help="retries of a cell whose worker dies (default 2)")
+    p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="SECONDS",
+                   help="checkpoint interval of a running cell: at most this much work is lost on a crash")
+    p.add_argument("--ray-temp-dir", default=None, help="temp dir of the embedded Ray (default /tmp/asp-ray-$USER)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="asp-dist", description=__doc__.splitlines()[0])
+    ap = Parser(prog="asp-dist", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("cell", help="run one training cell and print its result row as JSON")
@@ -163,24 +343,69 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--domain", help="show this domain's defaults and knobs only")
     p.set_defaults(func=cmd_fields)
 
-    for name in PLUGINS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name == name:
-                continue
-            raise
-        module.register(sub)
+    p = sub.add_parser("sweep", help="run a named grid of cells on Ray Tune",
+                       description="Run (or continue) a sweep over a space from tune_spaces/ or a .toml path.")
+    p.add_argument("space", help="space name (smoke, paper, paper-vae, ...) or path to a .toml file")
+    p.add_argument("--name", default=None, help="sweep name (default: the space's name)")
+    _add_run_options(p)
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("resume", help="continue an interrupted sweep",
+                       description="Continue sweep NAME from its manifest; failed cells are retried.")
+    p.add_argument("name")
+    _add_run_options(p)
+    p.set_defaults(func=cmd_resume)
+
+    p = sub.add_parser("status", help="done / failed / pending cells of a sweep")
+    p.add_argument("name")
+    _add_results(p)
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("stats", help="statistics, figures and report.md of one or more sweeps",
+                       description="Turn a sweep's rows into tables (stats/), figures (figures/) and report.md.")
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP",
+                   help="sweep name (under --results) or directory, any directory or .parquet files; several merge")
+    _add_results(p)
+    p.add_argument("--out", help="directory for stats/, figures/ and report.md (default: the single sweep directory)")
+    p.add_argument("--metric", default="eval_mixed", help="metric column to analyse (default: eval_mixed)")
+    p.add_argument("--paired-range", action="append", default=[], metavar="DOMAIN=LO-HI",
+                   help="paired counts of the Friedman test (defaults: the paper's per domain, others all)")
+    p.add_argument("--threshold", action="append", default=[], metavar="DOMAIN=VALUE",
+                   help="data-efficiency threshold of the metric (defaults: the paper's, else 90%% of base)")
+    p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
+    p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples (default 2000)")
+    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--no-figures", action="store_true", help="tables and report only")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_stats)
+
+    p = sub.add_parser("query", help="filter a sweep's rows or run SQL on them",
+                       description="Rows of one or more sweeps. --where takes a SQL boolean expression "
+                                   "(DuckDB), --sql a whole query over the view `cells`.")
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP",
+                   help="sweep name (under --results) or directory, any directory or .parquet files")
+    _add_results(p)
+    p.add_argument("--where", help="SQL condition, e.g. \"method = 'asp' AND paired >= 2\"")
+    p.add_argument("--columns", help="comma-separated columns to show (default: all)")
+    p.add_argument("--sql", help="a full SQL query over the view `cells`, e.g. \"SELECT method, median(eval_mixed) "
+                                 "FROM cells GROUP BY method\"")
+    p.add_argument("--format", default="table", choices=("table", "csv", "json", "parquet"),
+                   help="output format (json = one object per line; parquet needs --out)")
+    p.add_argument("--out", help="write to this file instead of stdout")
+    p.add_argument("--limit", type=int, help="at most this many rows (with --where/--columns)")
+    p.set_defaults(func=cmd_query)
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    args.argv = argv
     try:
         return int(args.func(args) or 0)
-    except (SpecError, FileNotFoundError, PermissionError) as e:
-        print(f"asp-dist: error: {e}", file=sys.stderr)
+    except SpecError as e:
+        message = " ".join(str(e).split("\n")).strip() or type(e).__name__
+        print(f"asp-dist: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("asp-dist: interrupted", file=sys.stderr)

@@ -8,9 +8,10 @@ import numpy as np
 import pandas as pd
 from test_stats import make_rows, write_sweep
 
+from asp_dist.analysis.job import compute
 from asp_dist.analysis.plots import plot_all
-from asp_dist.analysis.stats import StatsConfig, compute
-from asp_dist.cli_stats import main, run_job
+from asp_dist.analysis.tables import StatsConfig
+from asp_dist.cli import main, run_stats_job
 
 
 def _nonempty(paths):
@@ -78,8 +79,9 @@ def test_malformed_figure_data_is_a_note_not_a_crash(tmp_path):
 
 def test_whole_job_writes_tables_figures_and_report(tmp_path):
     rows = make_rows(trials=range(4))
-    sweep = write_sweep(tmp_path / "job", rows, manifest_ids=[r["cell_id"] for r in rows] + ["signaling-pc-p8-t0-x"])
-    report = run_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
+    gone = make_rows(methods=("pc",), paired=(8,), trials=range(1))[0] | {"cell_id": "signaling-pc-p8-t0-x"}
+    sweep = write_sweep(tmp_path / "job", rows, planned=rows + [gone])
+    report = run_stats_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
     text = report.read_text()
     assert "## At a glance: did ASP beat OSP and PC?" in text
     assert "ASP beat PC and OSP" in text

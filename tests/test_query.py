@@ -1,19 +1,23 @@
-"""`asp-dist query`: filters, columns, SQL over the view `cells`, output formats, user errors."""
+"""`asp-dist query`: filters, columns, SQL over the view `cells`, output formats, inputs (sweep names
+under --results, directories, loose and merged files), user errors."""
 
 from __future__ import annotations
 
 import io
 import json
 from contextlib import redirect_stdout
+from pathlib import Path
 
 import pandas as pd
 import pyarrow.dataset as ds
 import pytest
 from test_stats import make_rows, write_sweep
 
-from asp_dist.cli_stats import main
-from asp_dist.results.query import cell_files, open_inputs, run_query, write_result
-from asp_dist.spec import SpecError
+from asp_dist.cli import main
+from asp_dist.errors import SpecError
+from asp_dist.results.query import find_inputs, open_inputs, run_query, write_result
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "results" / "examples"
 
 
 @pytest.fixture
@@ -50,7 +54,7 @@ def test_manifest_and_stats_folders_are_not_rows(sweep):
     pd.DataFrame({"x": [1]}).to_parquet(sweep / "stats" / "summary.parquet")
     assert len(run_query([sweep])) == 3 * 4 * 3 * 2
     # A bare directory of cells works too, and so do single files.
-    files = cell_files([sweep]).files
+    files = find_inputs([sweep]).files
     assert len(run_query([sweep / "cells"])) == len(files)
     assert len(run_query([files[0], files[1]])) == 2
 
@@ -69,6 +73,8 @@ def test_user_errors_are_one_line_spec_errors(sweep, tmp_path):
         run_query([tmp_path / "empty"])
     with pytest.raises(SpecError, match="needs --out"):
         write_result(pd.DataFrame({"a": [1]}), "parquet")
+    with pytest.raises(SpecError, match="cannot write --out"):
+        write_result(pd.DataFrame({"a": [1]}), "csv", tmp_path / "no-such-dir" / "x.csv")
 
 
 def test_formats_through_the_cli(sweep, tmp_path):
@@ -83,6 +89,24 @@ def test_formats_through_the_cli(sweep, tmp_path):
                  "--out", str(out)]) == 0
     assert len(pd.read_parquet(out)) == 24
     csv = tmp_path / "x.csv"
-    assert main(["query", str(sweep), "--columns", "cell_id", "--format", "csv", "--out", str(csv), "--limit", "5"]) == 0
+    assert main(["query", str(sweep), "--columns", "cell_id", "--format", "csv", "--out", str(csv),
+                 "--limit", "5"]) == 0
     assert csv.read_text().splitlines()[0] == "cell_id" and len(csv.read_text().splitlines()) == 6
     assert main(["query", str(sweep), "--columns", "nope"]) == 2
+
+
+def test_a_sweep_name_is_looked_up_under_results(sweep, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path.parent)  # neither ./q nor ./results/q exists here
+    assert main(["query", "q", "--results", str(tmp_path), "--sql", "SELECT count(*) AS n FROM cells",
+                 "--format", "csv"]) == 0
+    assert capsys.readouterr().out.split() == ["n", str(3 * 4 * 3 * 2)]
+    assert main(["query", "q", "--sql", "SELECT 1"]) == 2  # default --results is ./results
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("asp-dist: error: q does not exist") and "--results results" in err and "\n" not in err
+
+
+def test_merged_example_datasets_are_read_as_they_are():
+    path = EXAMPLES / "paper-levers.parquet"
+    df = run_query([path], sql="SELECT method, count(*) AS n FROM cells GROUP BY method ORDER BY method")
+    assert df["method"].tolist() == ["asp", "osp", "pc"] and df["n"].sum() == 420
+    assert len(run_query([path], where="paired = 4 AND trial = 0", columns=["method", "eval_mixed"])) == 3

@@ -15,20 +15,13 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from asp_dist.analysis.stats import (
-    StatsConfig,
-    bootstrap_median_ci,
-    compute,
-    friedman,
-    holm,
-    nemenyi,
-    quartiles,
-    run_stats,
-    wilcoxon,
-    write_tables,
-)
-from asp_dist.results.query import SchemaMismatch, load_rows, open_inputs
-from asp_dist.spec import SpecError
+from asp_dist.analysis.job import compute, run_stats, write_tables
+from asp_dist.analysis.rank_tests import bootstrap_median_ci, friedman, holm, nemenyi, quartiles, wilcoxon
+from asp_dist.analysis.tables import StatsConfig
+from asp_dist.errors import SchemaError, SpecError
+from asp_dist.results import store
+from asp_dist.results.query import load_rows, open_inputs
+from asp_dist.spec import FIELD_NAMES
 
 EFFECT = {"pc": 0.0, "osp": 0.5, "asp": 1.0}
 
@@ -63,13 +56,20 @@ def make_rows(domain: str = "signaling", methods=("pc", "osp", "asp"), paired=(0
     return rows
 
 
-def write_sweep(root: Path, rows: list[dict], manifest_ids: list[str] | None = None) -> Path:
+def write_sweep(root: Path, rows: list[dict], manifest_ids: list[str] | None = None,
+                planned: list[dict] | None = None) -> Path:
+    """A sweep directory of `rows`. Its manifest: `planned` rows as the sweep service writes them
+    (ids and their specs), or `manifest_ids` as an old manifest (ids only), or none."""
     root.mkdir(parents=True, exist_ok=True)
     for row in rows:
         d = root / "cells" / f"domain={row['domain']}" / f"method={row['method']}"
         d.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.Table.from_pylist([row]), d / f"{row['cell_id']}.parquet")
-    if manifest_ids is not None:
+    if planned is not None:
+        (root / "manifest.json").write_text(json.dumps({
+            "name": root.name, "cells": [r["cell_id"] for r in planned],
+            "specs": [{k: v for k, v in r.items() if k in FIELD_NAMES} for r in planned]}))
+    elif manifest_ids is not None:
         (root / "manifest.json").write_text(json.dumps({"name": root.name, "cells": manifest_ids, "specs": []}))
     return root
 
@@ -243,12 +243,28 @@ def test_efficiency_threshold_and_two_n_claim():
     assert pd.isna(eff.loc["pc", "min_paired_reaching"])
     claim = res.tables["claim_2n"].set_index(["other", "n"])
     assert claim.loc[("osp", 1), "holds"] and claim.loc[("osp", 2), "holds"]  # 1.1 >= 0.7, 1.2 >= 0.9
-    assert claim.loc[("pc", 2), "median_diff"] == pytest.approx(1.2 - 0.4)
+    assert claim.loc[("pc", 2), "median_gain"] == pytest.approx(1.2 - 0.4)
     assert claim.loc[("pc", 2), "verdict"].startswith("beats")
     # ASP made worse than OSP with twice the data: the claim fails.
     rows.loc[rows.method == "asp", "eval_mixed"] -= 0.9
     claim = compute(rows, cfg()).tables["claim_2n"].set_index(["other", "n"])
     assert not claim.loc[("osp", 2), "holds"] and claim.loc[("osp", 2), "verdict"] == "falls short"
+
+
+def test_two_n_gain_is_positive_when_asp_is_better_whichever_way_the_metric_points():
+    # The same outcomes stored once as a score (higher is better) and once negated as an error (lower is
+    # better): ASP's gain over the others, its interval and the verdict must not change sign with the direction.
+    gains = {}
+    for higher in (True, False):
+        rows = pd.DataFrame(make_rows(domain="levers", paired=(1, 2, 4), higher=higher,
+                                      effect={"pc": 0.0, "osp": 0.5, "asp": 5.0}))
+        claim = compute(rows, cfg()).tables["claim_2n"].set_index(["other", "n"])
+        rec = claim.loc[("pc", 2)]
+        assert rec["verdict"].startswith("beats") and rec["median_gain"] > 0 and rec["gain_ci_low"] > 0
+        assert (claim["verdict"].str.startswith("beats") == (claim["gain_ci_low"] > 0)).all()
+        assert ((claim["gain_ci_low"] <= claim["median_gain"]) & (claim["median_gain"] <= claim["gain_ci_high"])).all()
+        gains[higher] = claim[["median_gain", "gain_ci_low", "gain_ci_high", "verdict"]]
+    pd.testing.assert_frame_equal(gains[True], gains[False])
 
 
 def test_default_threshold_is_ninety_percent_of_base():
@@ -267,9 +283,9 @@ def test_duplicate_rows_are_dropped_with_a_note():
 
 def test_partial_sweep_reports_missing_cells_and_incomplete_blocks(tmp_path):
     rows = make_rows(trials=range(4))
-    planned = [r["cell_id"] for r in rows] + ["signaling-asp-p8-t0-abcdef"]
+    boom = make_rows(methods=("asp",), paired=(8,), trials=range(1))[0] | {"cell_id": "signaling-asp-p8-t0-abcdef"}
     done = [r for r in rows if not (r["method"] == "pc" and r["trial"] == 3)]
-    sweep = write_sweep(tmp_path / "partial", done, manifest_ids=planned)
+    sweep = write_sweep(tmp_path / "partial", done, planned=rows + [boom])
     failed = sweep / "failed"
     failed.mkdir()
     (failed / "signaling-asp-p8-t0-abcdef.json").write_text(json.dumps(
@@ -310,10 +326,32 @@ def test_failed_cells_are_reported_without_a_manifest(tmp_path):
     assert missing.iloc[0]["kind"] == "failed" and missing.iloc[0]["error"] == "ValueError: nan loss"
 
 
+def test_missing_cell_of_an_old_manifest_is_not_guessed_from_its_id(tmp_path):
+    # Manifests from before the specs were stored hold ids only: the cell is listed by id, described by its
+    # failure record when there is one, and its paired count and trial stay unknown (no parsing of the id).
+    rows = make_rows(trials=range(2))
+    sweep = write_sweep(tmp_path / "old", rows, manifest_ids=[r["cell_id"] for r in rows]
+                        + ["signaling-pc-p8-t0-0123456789", "signaling-osp-p8-t0-9876543210"])
+    store.record_failure(sweep, "signaling-osp-p8-t0-9876543210", "signaling", "osp", "Traceback\nValueError: x")
+    missing = run_stats([sweep], cfg()).tables["missing"].set_index("cell_id")
+    never = missing.loc["signaling-pc-p8-t0-0123456789"]
+    assert never["kind"] == "not finished (manifest)" and pd.isna(never["method"]) and pd.isna(never["paired"])
+    failed = missing.loc["signaling-osp-p8-t0-9876543210"]
+    assert failed["kind"] == "failed" and failed["error"] == "ValueError: x"
+    assert (failed["domain"], failed["method"]) == ("signaling", "osp") and pd.isna(failed["paired"])
+
+
+def test_unreadable_manifest_is_a_note_not_a_crash(tmp_path):
+    sweep = write_sweep(tmp_path / "badmanifest", make_rows(trials=range(2)))
+    (sweep / "manifest.json").write_text("{not json")
+    res = run_stats([sweep], cfg())
+    assert any("manifest.json cannot be read" in n for n in res.notes) and not res.grid_known
+
+
 def test_sweep_without_manifest_still_runs(tmp_path):
     sweep = write_sweep(tmp_path / "nomanifest", make_rows(trials=range(3)))
     res = run_stats([sweep], cfg())
-    assert any("no readable manifest" in n for n in res.notes) and not res.grid_known
+    assert any("no manifest.json" in n for n in res.notes) and not res.grid_known
     assert res.tables["missing"].empty
 
 
@@ -335,14 +373,14 @@ def test_mismatched_column_types_are_refused(tmp_path):
     sweep = write_sweep(tmp_path / "bad", rows)
     bad = dict(rows[0], eval_mixed="0.5", cell_id="odd")
     pq.write_table(pa.Table.from_pylist([bad]), sweep / "cells" / "odd.parquet")
-    with pytest.raises(SchemaMismatch, match="column 'eval_mixed' is float in .* but string in"):
+    with pytest.raises(SchemaError, match="column 'eval_mixed' is float in .* but string in"):
         run_stats([sweep], cfg())
 
 
 def test_files_without_key_columns_are_refused(tmp_path):
     sweep = write_sweep(tmp_path / "nokeys", make_rows(trials=range(2)))
     pq.write_table(pa.table({"x": [1]}), sweep / "cells" / "stray.parquet")
-    with pytest.raises(SchemaMismatch, match="lacks the key column"):
+    with pytest.raises(SchemaError, match="lacks the key column"):
         open_inputs([sweep])
 
 
@@ -364,7 +402,7 @@ def test_missing_metric_column_is_a_clear_error():
 
 def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
     """Rows from run_cell itself (tiny signaling cells), stored as the sweep service stores them."""
-    from asp_dist.cli_stats import run_job
+    from asp_dist.cli import run_stats_job
     from asp_dist.spec import CellSpec
     from asp_dist.training.cell import run_cell
 
@@ -386,7 +424,7 @@ def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
                 pq.write_table(table, d / f"{row['cell_id']}.parquet")
                 ids.append(row["cell_id"])
     (sweep / "manifest.json").write_text(json.dumps({"cells": ids + ["signaling-asp-p4-t0-0000000000"]}))
-    report = run_job([str(sweep)], cfg=cfg(), figures=False, log=lambda m: None)
+    report = run_stats_job([str(sweep)], cfg=cfg(), figures=False, log=lambda m: None)
     text = report.read_text()
     assert "12 rows" in text and "signaling-asp-p4-t0-0000000000" in text
     summary = pd.read_parquet(sweep / "stats" / "summary.parquet")

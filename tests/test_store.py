@@ -1,4 +1,5 @@
-"""The Parquet result store: pinned schema, atomic one-file-per-cell writes, three readers, base cache."""
+"""The result store: pinned schema, atomic one-file-per-cell writes, layout, manifest, failures, the
+reader (and pandas / pyarrow / DuckDB reading the folder as-is), and the shared base cache."""
 
 from __future__ import annotations
 
@@ -110,8 +111,30 @@ def test_failures_and_manifest_roundtrip(tmp_path):
     assert info["times_failed"] == 2 and info["error"] == "boom again"
     store.clear_failure(tmp_path, "c1")
     assert store.failed_cells(tmp_path) == {}
+    assert store.read_manifest(tmp_path) is None
     store.write_manifest(tmp_path, {"grid_hash": "abc", "cells": ["c1"]})
     assert store.read_manifest(tmp_path)["grid_hash"] == "abc"
+    (tmp_path / store.MANIFEST).write_text("{not json")
+    with pytest.raises(SchemaError, match="not valid JSON"):
+        store.read_manifest(tmp_path)
+    (tmp_path / store.MANIFEST).write_text('{"cell_ids": ["c1"]}')  # not the store's shape
+    with pytest.raises(SchemaError, match="list of cell ids under 'cells'"):
+        store.read_manifest(tmp_path)
+
+
+def test_layout_lookup_and_finished_files(tmp_path, rows):
+    sweep = tmp_path / "results" / "exp"
+    store.write_row(sweep, rows[0], sweep_id="exp")
+    crashed = store.cell_path(sweep, "signaling", "asp", ".x.123.tmp").with_suffix(".parquet")
+    crashed.parent.mkdir(parents=True)
+    crashed.write_bytes(b"partial")
+    (store.cells_dir(sweep) / "_staging").mkdir()
+    (store.cells_dir(sweep) / "_staging" / "y.parquet").write_bytes(b"partial")
+    assert store.cell_files(sweep) == [store.cell_path(sweep, "signaling", "pc", rows[0]["cell_id"])]
+    assert store.is_sweep_dir(sweep) and not store.is_sweep_dir(tmp_path)
+    assert store.locate_sweep("exp", results=tmp_path / "results") == sweep
+    assert store.locate_sweep(str(sweep)) == sweep
+    assert store.locate_sweep("ghost", results=tmp_path / "results") == Path("ghost")  # reported as missing
 
 
 # ---- base cache ---------------------------------------------------------------------------------

@@ -1,14 +1,18 @@
-"""The sweep service end to end on real Ray: smoke sweep, SIGKILL of the driver then resume,
-a worker killed mid-cell, a cell that keeps failing, and a two-node Ray cluster on loopback.
+"""The sweep service end to end on real Ray: smoke sweep (and stats / query of it by name),
+SIGKILL of the driver then resume, workers killed mid-cell, a cell that fails deterministically,
+and a two-node Ray cluster on loopback.
 
 Every sweep runs as a CLI subprocess (as a user would), so a killed driver cannot take pytest
-with it; processes started here run in their own sessions and are killed in teardown.
+with it; processes started here run in their own sessions and are killed in teardown. Workers
+are killed from the test, as an OOM killer or a lost node would: no hook in the code under test.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -16,12 +20,15 @@ import sys
 import time
 from pathlib import Path
 
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
+from asp_dist.cli import main
 from asp_dist.results import store
+from asp_dist.sweep import ledger
+from asp_dist.sweep.base_cache import rejected_path
 from asp_dist.sweep.spaces import expand
-from asp_dist.sweep.tune import FAULT_ENV
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
 from asp_dist.training.row import schema as row_schema
@@ -35,7 +42,6 @@ PLACE_COLUMNS = {"sweep_id", "ray_node_id", "ray_version", "code_revision"}
 
 def env(**extra):
     e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
-    e.pop(FAULT_ENV, None)
     e.update(extra)
     return e
 
@@ -85,11 +91,19 @@ def parquet_files(sweep_dir):
     return sorted(p for p in Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
 
 
-def test_smoke_sweep_end_to_end(tmp_path):
-    proc = cli("sweep", "smoke", "--results", str(tmp_path))
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    """`asp-dist sweep smoke` (18 tiny signaling cells), run once for the tests that read it."""
+    results = tmp_path_factory.mktemp("smoke-results")
+    proc = cli("sweep", "smoke", "--results", str(results))
+    return results, proc
+
+
+def test_smoke_sweep_end_to_end(smoke):
+    results, proc = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "18/18 cells done, 0 failed" in proc.stdout
-    sweep_dir = tmp_path / "smoke"
+    sweep_dir = results / "smoke"
     files = parquet_files(sweep_dir)
     assert len(files) == 18
     for f in files:
@@ -101,14 +115,27 @@ def test_smoke_sweep_end_to_end(tmp_path):
     assert df["eval_mixed"].between(0, 1).all()
     assert df.groupby("trial")["base_key"].nunique().eq(1).all()
     assert len(list((sweep_dir / "bases").glob("*.pt"))) == 2, "one base per trial, shared by its 9 cells"
-    assert "done" in proc.stderr and "ETA" in proc.stderr  # progress lines
+    assert "done" in proc.stderr and "ETA" in proc.stderr  # the counter line
     # Running it again retrains nothing and touches no file.
     mtimes = {f: f.stat().st_mtime_ns for f in files}
-    again = cli("sweep", "smoke", "--results", str(tmp_path))
+    again = cli("sweep", "smoke", "--results", str(results))
     assert again.returncode == 0 and "18 already done" in again.stderr
     assert {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)} == mtimes
-    status = cli("status", "smoke", "--results", str(tmp_path))
+    status = cli("status", "smoke", "--results", str(results))
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"]
+
+
+def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, monkeypatch, capsys):
+    results, proc = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    monkeypatch.chdir(tmp_path)  # no ./results here: the name must be looked up under --results
+    assert main(["query", "smoke", "--results", str(results), "--sql",
+                 "SELECT method, count(*) AS n FROM cells GROUP BY method ORDER BY method", "--format", "csv"]) == 0
+    assert capsys.readouterr().out.split() == ["method,n", "asp,6", "osp,6", "pc,6"]
+    assert main(["stats", "smoke", "--results", str(results), "--no-figures", "--bootstrap", "200", "--quiet"]) == 0
+    summary = pd.read_parquet(results / "smoke" / "stats" / "summary.parquet")
+    assert set(summary["treatment"]) == {"pc", "osp", "asp"} and summary["n"].sum() == 18
+    assert "18 rows" in (results / "smoke" / "report.md").read_text()
 
 
 def test_sigkill_of_driver_then_resume(tmp_path):
@@ -148,39 +175,113 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
     assert not store.failed_cells(results / "k")
 
 
+def ray_workers_running(cell_id: str, ray_temp_dir: str) -> list[int]:
+    """Pids of the Ray workers of this test's Ray running `cell_id`: Tune moves a trial's worker into the
+    trial's working directory, named after the cell (trial_dirname_creator), also when it reuses an actor."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            cwd = os.readlink(proc / "cwd")
+        except (OSError, ValueError):
+            continue
+        if proc.name.isdigit() and cwd.startswith(ray_temp_dir) and Path(cwd).name == cell_id:
+            pids.append(int(proc.name))
+    return pids
+
+
+def sigkill(pid: int) -> bool:
+    try:
+        os.kill(pid, signal.SIGKILL)
+        return True
+    except ProcessLookupError:  # it ended on its own meanwhile
+        return False
+
+
+def latest_checkpoint(sweep_dir: Path, cell_id: str) -> int:
+    """Index of the newest checkpoint Tune persisted for a cell of the first experiment (-1: none)."""
+    found = [int(p.name.rsplit("_", 1)[1]) for p in (sweep_dir / "tune" / "run-1" / cell_id).glob("checkpoint_*")]
+    return max(found, default=-1)
+
+
 def test_killed_worker_is_retried_and_failing_cells_do_not_stop_the_sweep(tmp_path):
     grid = space(tmp_path, """
+[fixed]
+method = "asp"
+unpaired_size = 256
+
 [[grid]]
-fixed = { train_steps = 400, unpaired_size = 256, method = "asp", trial = 0 }
-axes = { paired = [0, 2, 4, 8] }
+fixed = { train_steps = 400, trial = 0 }
+axes = { paired = [0] }
+
+[[grid]]  # long enough to be killed mid-run
+fixed = { train_steps = 4000, trial = 0 }
+axes = { paired = [2, 4] }
+
+[[grid]]  # its own trial, so that its base can be the rejected one
+fixed = { train_steps = 400, trial = 1 }
+axes = { paired = [8] }
 """)
     specs = expand(grid)
-    by_paired = {s.paired: s.cell_id for s in specs}
-    marker = tmp_path / "killed-once"
-    fault = f"{by_paired[2]}:150:{marker},{by_paired[4]}:50:always,{by_paired[8]}:50:raise"
-    first = cli("sweep", grid, "--name", "f", "--results", str(tmp_path), "--max-failures", "1",
-                "--checkpoint-every", "0.2", **{FAULT_ENV: fault})
-    assert first.returncode == 1, first.stderr[-3000:]
-    assert "2/4 cells done, 2 failed" in first.stdout
-    assert marker.exists(), "the worker of the p2 cell was not killed"
-    done = store.read_rows(tmp_path / "f")
-    assert set(done["cell_id"]) == {by_paired[0], by_paired[2]}, "the killed worker's cell did not complete"
-    failed = store.failed_cells(tmp_path / "f")
-    assert set(failed) == {by_paired[4], by_paired[8]}
-    assert "failed after 2 attempt(s)" in failed[by_paired[4]]["error"]  # worker died twice: 1 retry
-    assert "BaseRejected: injected" in failed[by_paired[8]]["error"]  # deterministic: no retry
+    cell = {s.paired: s.cell_id for s in specs}
+    sweep_dir = tmp_path / "f"
+    # p8 fails deterministically: its trial's base is on record as never meeting its bar (what
+    # base_cache writes after the last attempt), so the cell fails at once, without a retry.
+    sweep_dir.mkdir()
+    store.write_manifest(sweep_dir, ledger.new_manifest("f", "grid", specs))
+    rejected = rejected_path(store.bases_dir(sweep_dir), next(s.base_key for s in specs if s.paired == 8))
+    rejected.parent.mkdir()
+    rejected.write_text(json.dumps({"error": "no base met the bar (planted by the test)"}))
+
+    ray_temp = f"/tmp/asp-kw-{os.getpid()}"
+    out_file, err_file = tmp_path / "out.txt", tmp_path / "err.txt"
+    with open(out_file, "w") as out_fh, open(err_file, "w") as err_fh:  # files: a full pipe would block the driver
+        driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", grid, "--name", "f", "--results",
+                                   str(tmp_path), "--max-failures", "1", "--checkpoint-every", "0.2",
+                                   "--ray-temp-dir", ray_temp], env=env(), start_new_session=True, stdout=out_fh,
+                                  stderr=err_fh)
+    killed_p2, killed_p4 = [], set()
+    try:
+        deadline = time.monotonic() + 420
+        while driver.poll() is None and time.monotonic() < deadline:
+            # p2: killed once, mid-run, after Tune holds a checkpoint of it (the second one is
+            # written only after the first was reported, so the first is complete).
+            if not killed_p2 and latest_checkpoint(sweep_dir, cell[2]) >= 1 and not store.is_done(
+                    sweep_dir, "signaling", "asp", cell[2]):
+                killed_p2 += [pid for pid in ray_workers_running(cell[2], ray_temp) if sigkill(pid)]
+            # p4: every worker that runs it is killed, until Tune gives up on the cell.
+            if cell[4] not in store.failed_cells(sweep_dir):
+                killed_p4 |= {pid for pid in set(ray_workers_running(cell[4], ray_temp)) - killed_p4 if sigkill(pid)}
+            time.sleep(0.05)
+        driver.wait(60)
+    finally:
+        kill_group(driver)
+        shutil.rmtree(ray_temp, ignore_errors=True)
+    out, err = out_file.read_text(), err_file.read_text()
+    assert driver.returncode == 1, err[-3000:]
+    assert "2/4 cells done, 2 failed" in out
+    assert killed_p2, "the worker of the p2 cell was not killed"
+    assert len(killed_p4) == 2, killed_p4  # first attempt + max_failures=1 retry
+    done = store.read_rows(sweep_dir)
+    assert set(done["cell_id"]) == {cell[0], cell[2]}, "the killed worker's cell did not complete"
+    resumed = done.set_index("cell_id")["resumed_from_step"]
+    assert resumed[cell[2]] > 0, "the retried cell started over instead of continuing from its checkpoint"
+    failed = store.failed_cells(sweep_dir)
+    assert set(failed) == {cell[4], cell[8]}
+    assert "failed after 2 attempt(s)" in failed[cell[4]]["error"]  # worker died twice: 1 retry
+    assert "BaseRejected: no base met the bar (planted" in failed[cell[8]]["error"]  # deterministic: no retry
     status = cli("status", "f", "--results", str(tmp_path)).stdout
-    assert status.splitlines()[-3].split() == ["total", "2", "2", "0"] and f"failed {by_paired[4]}" in status
+    assert status.splitlines()[-3].split() == ["total", "2", "2", "0"] and f"failed {cell[4]}" in status
 
     # resume retries the failed cells (the faults are gone) and never touches finished ones: the
     # worker-killed cell in the restored Tune experiment, the deterministic one in a fresh one.
-    mtimes = {f: f.stat().st_mtime_ns for f in parquet_files(tmp_path / "f")}
+    rejected.unlink()
+    mtimes = {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)}
     second = cli("resume", "f", "--results", str(tmp_path))
     assert second.returncode == 0, second.stderr[-3000:]
     assert all(f.stat().st_mtime_ns == m for f, m in mtimes.items())
-    assert not store.failed_cells(tmp_path / "f")
-    assert (tmp_path / "f" / "tune" / "run-2").is_dir()
-    assert_rows_match(tmp_path / "f", expected_rows(specs))
+    assert not store.failed_cells(sweep_dir)
+    assert (sweep_dir / "tune" / "run-2").is_dir()
+    assert_rows_match(sweep_dir, expected_rows(specs))
 
 
 def free_port() -> int:

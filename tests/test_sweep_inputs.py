@@ -1,19 +1,17 @@
-"""Bad input to `asp-dist sweep | resume | status` (issue 3, point 6): one clear line, exit 2,
-nothing already written touched — all refused before Ray starts. Also status and progress."""
+"""Bad input to `asp-dist sweep | resume | status`: one clear line, exit 2, nothing already written
+touched — all refused before Ray starts. Also the status command and the sweep's counter line."""
 
 from __future__ import annotations
 
 import io
-import json
-import time
 
 import pytest
 
 from asp_dist.cli import main
 from asp_dist.results import store
-from asp_dist.sweep.progress import SweepProgress, format_duration
+from asp_dist.sweep.ledger import new_manifest, sweep_lock, sweep_status
+from asp_dist.sweep.progress import SweepCounter, format_duration
 from asp_dist.sweep.spaces import expand
-from asp_dist.sweep.tune import check_manifest, sweep_lock, sweep_status
 
 
 def run_cli(capsys, *argv):
@@ -39,7 +37,7 @@ def started_sweep(tmp_path):
     specs = expand("smoke")
     sweep_dir = tmp_path / "results" / "exp"
     sweep_dir.mkdir(parents=True)
-    store.write_manifest(sweep_dir, check_manifest(sweep_dir, "exp", specs, "smoke"))
+    store.write_manifest(sweep_dir, new_manifest("exp", "smoke", specs))
     row = {**specs[0].to_dict(), "cell_id": specs[0].cell_id, "eval_mixed": 0.5}
     store.write_row(sweep_dir, row, sweep_id="exp")
     store.record_failure(sweep_dir, specs[1].cell_id, "signaling", specs[1].method, "Boom: it broke")
@@ -68,7 +66,13 @@ def test_bad_domain_method_or_value(capsys, tmp_path, text, needle):
 
 
 def test_bad_numbers_and_names(capsys, tmp_path):
-    one_line_error(*run_cli(capsys, "sweep", "smoke", "--workers", "0", "--results", str(tmp_path)), "--workers must be >= 1")
+    one_line_error(*run_cli(capsys, "sweep", "smoke", "--workers", "0", "--results", str(tmp_path)),
+                   "--workers must be >= 1")
+    one_line_error(*run_cli(capsys, "sweep", "smoke", "--checkpoint-every", "0", "--results", str(tmp_path)),
+                   "--checkpoint-every must be > 0")
+    with pytest.raises(SystemExit) as exit_info:  # argparse's own errors: the same one line
+        main(["sweep", "smoke", "--workers", "two"])
+    one_line_error(exit_info.value.code, capsys.readouterr().err, "argument --workers: invalid int value: 'two'")
     one_line_error(*run_cli(capsys, "sweep", "smoke", "--name", "../escape", "--results", str(tmp_path)),
                    "invalid sweep name")
     assert not any(tmp_path.iterdir())
@@ -132,16 +136,9 @@ def test_status_counts_per_domain_and_method(capsys, started_sweep):
     assert "Boom: it broke" in out
 
 
-def test_manifest_records_grid(tmp_path):
-    specs = expand("smoke")
-    manifest = check_manifest(tmp_path, "x", specs, "smoke")
-    assert manifest["cells"] == [s.cell_id for s in specs] and len(manifest["grid_hash"]) == 16
-    assert json.loads(json.dumps(manifest))["specs"][0]["train_steps"] == 150
-
-
-def test_progress_line_counts_and_eta():
+def test_counter_line_counts_and_eta():
     out = io.StringIO()
-    p = SweepProgress("s", total=10, already_done=4, stream=out)
+    p = SweepCounter("s", total=10, already_done=4, stream=out)
     assert "done 4/10" in p.line() and "pending 6" in p.line() and "ETA ?" in p.line()
     p.start -= 10.0
     p.update(done=6, running=2, failed=1)
@@ -152,4 +149,3 @@ def test_progress_line_counts_and_eta():
     assert len(out.getvalue().splitlines()) == 1
     p.finish()
     assert format_duration(3725) == "1:02:05" and format_duration(None) == "?"
-    assert time.monotonic() > p.start

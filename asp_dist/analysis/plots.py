@@ -26,26 +26,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from asp_dist.analysis.stats import (  # noqa: E402
-    StatsResult,
-    bootstrap_median_ci,
-    condition_key,
-    group_seed,
-    is_asp,
-    treatment_order,
-)
+from asp_dist.analysis.job import StatsResult  # noqa: E402
+from asp_dist.analysis.layout import condition_key, is_asp, treatment_order  # noqa: E402
+from asp_dist.analysis.paper import knob_label, metric_label  # noqa: E402
+from asp_dist.analysis.rank_tests import bootstrap_median_ci, group_seed  # noqa: E402
 
-METRIC_UNITS: dict[tuple[str, str], str] = {
-    ("particles", "eval_mixed"): "mixed-team reward per 40-step episode",
-    ("vae", "eval_mixed"): "mixed reconstruction MSE per pixel",
-    ("levers", "eval_mixed"): "mixed-team error, 1 − reward (fraction of levers)",
-    ("signaling", "eval_mixed"): "mixed-team accuracy (fraction of states)",
-}
-KNOB_LABELS = {
-    "vae_latent_dim": "latent size d (dimensions)",
-    "signaling_skew": "token skew (0 = uniform)",
-    "paired": "paired examples |P| (count)",
-}
 METHOD_COLORS = {"pc": "#7f7f7f", "osp": "#1f77b4", "asp": "#d62728"}
 MAX_PANELS = 8
 MAX_FIGURES_PER_KIND = 12
@@ -59,9 +44,9 @@ class Figure:
     paths: list[Path]
 
 
-def metric_label(domain: str, metric: str, higher: bool) -> str:
-    unit = METRIC_UNITS.get((domain, metric), metric)
-    return f"{unit}\n({'↑ higher' if higher else '↓ lower'} is better)"
+def y_label(domain: str, metric: str, higher: bool) -> str:
+    """The metric with its unit (the domain's PaperFacts) and which direction is better."""
+    return f"{metric_label(domain, metric)}\n({'↑ higher' if higher else '↓ lower'} is better)"
 
 
 def _style(treatment: str, i: int) -> dict[str, Any]:
@@ -137,12 +122,12 @@ def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Fi
             ax.set_xscale("symlog", base=2, linthresh=1)
         ax.set_xticks(sorted(sc["paired"].unique()))
         ax.set_xticklabels([str(p) for p in sorted(sc["paired"].unique())])
-        ax.set_xlabel(KNOB_LABELS["paired"])
+        ax.set_xlabel(knob_label(domain, "paired"))
         if cond != "all":
             ax.set_title(cond, fontsize=10)
         ax.grid(alpha=0.3)
     _maybe_log_y(axes, s["q1"], s["q3"])
-    axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
+    axes[0].set_ylabel(y_label(domain, result.config.metric, layout.higher_is_better))
     axes[0].legend(fontsize=8)
     n_trials = int(result.rows.loc[result.rows["domain"] == domain, "trial"].nunique())
     fig.suptitle(f"{domain}: median and quartiles over {n_trials} trials", fontsize=11)
@@ -194,11 +179,11 @@ def plot_metric_vs_knob(result: StatsResult, domain: str, knob: str, out_dir: Pa
             if log2 or len(ticks) <= 8:
                 ax.set_xticks(ticks)
                 ax.set_xticklabels([f"{v:g}" for v in ticks])
-            ax.set_xlabel(KNOB_LABELS.get(knob, knob))
+            ax.set_xlabel(knob_label(domain, knob))
             ax.set_title(f"{paired} paired" + (f", {suffix}" if suffix else ""), fontsize=10)
             ax.grid(alpha=0.3)
         _maybe_log_y(axes, g["q1"], g["q3"])
-        axes[0].set_ylabel(metric_label(domain, result.config.metric, layout.higher_is_better))
+        axes[0].set_ylabel(y_label(domain, result.config.metric, layout.higher_is_better))
         axes[0].legend(fontsize=8)
         fig.suptitle(f"{domain}: {result.config.metric} against {knob} (median and quartiles)", fontsize=11)
         stem = _safe(f"{domain}_metric_vs_{knob}" + (f"_{suffix}" if suffix else ""))
@@ -245,10 +230,10 @@ def plot_asp_effect_vs_knob(result: StatsResult, domain: str, knob: str, out_dir
                             yerr=[meds_a - los_a, his_a - meds_a], marker="o", markersize=4, capsize=2,
                             color=cmap(j), label=f"{paired} paired" + (f" ({asp})" if len(asps) > 1 else ""))
         ax.axhline(0, color="black", linewidth=0.8)
-        ax.set_xlabel(KNOB_LABELS.get(knob, knob))
+        ax.set_xlabel(knob_label(domain, knob))
         ax.set_title(f"ASP − {other.upper()}", fontsize=10)
         ax.grid(alpha=0.3)
-    unit = METRIC_UNITS.get((domain, result.config.metric), result.config.metric)
+    unit = metric_label(domain, result.config.metric)
     better = "above 0: ASP better" if layout.higher_is_better else "below 0: ASP better"
     axes[0].set_ylabel(f"median paired difference in\n{unit} ({better})")
     axes[0].legend(fontsize=7)

@@ -15,16 +15,11 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from asp_dist.analysis.job import StatsResult
+from asp_dist.analysis.layout import is_asp, treatment_order
+from asp_dist.analysis.markdown import format_cell, to_markdown
+from asp_dist.analysis.paper import paper_claim
 from asp_dist.analysis.plots import Figure
-from asp_dist.analysis.stats import StatsResult, format_cell, is_asp, to_markdown, treatment_order
-
-# The paper's claims, to say next to our verdicts whether they held.
-PAPER_CLAIMS = {
-    "particles": "ASP better than OSP and PC over 2–4 paired (Friedman, p < 0.01 each)",
-    "levers": "ASP better than OSP (p < 0.05) and PC (p < 0.01) over 4–8 paired (Friedman)",
-    "vae": "ASP better reconstructions than OSP and PC at intermediate paired counts; robust to latent size",
-    "signaling": "(policy-space analysis) ASP prunes more conventions, so helps more, the more skewed the tokens",
-}
 
 
 def _p(p: float) -> str:
@@ -172,7 +167,7 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                  "post-hoc are both below α (the paper's procedure); the Wilcoxon signed-rank test with Holm's correction "
                  "is shown as a second view. With two methods, the Wilcoxon test decides. Δ = median paired difference "
                  "ASP − other in metric units; a–t–b = blocks where ASP is better – tied – worse.\n")
-    claims = [f"- {d}: the paper reports: {PAPER_CLAIMS[d]}." for d in sorted(result.layouts) if d in PAPER_CLAIMS]
+    claims = [f"- {d}: the paper reports: {claim}." for d in sorted(result.layouts) if (claim := paper_claim(d))]
     if claims:
         parts.append("\nFor comparison, the paper's findings:\n\n" + "\n".join(claims) + "\n")
     trend = t.get("knob_trend", pd.DataFrame())
@@ -204,11 +199,13 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
             held = [str(n) for n, h in zip(g["n"], g["holds"]) if h]
             sure = [str(n) for n, v in zip(g["n"], g["verdict"]) if v.startswith("beats")]
             parts.append(f"- {domain} ({cond}) vs {other.upper()}: holds (medians) at n = {', '.join(held) or 'none'}"
-                         f" of {', '.join(str(n) for n in g['n'])}; with the paired difference's 95 % interval above 0 at "
+                         f" of {', '.join(str(n) for n in g['n'])}; with the 95 % interval of ASP's gain above 0 at "
                          f"n = {', '.join(sure) or 'none'}.\n")
         parts.append("\n" + to_markdown(claim, ["domain", "condition", "asp", "other", "n", "two_n", "median_asp_n",
-                                                "median_other_2n", "n_trials", "median_diff", "diff_ci_low",
-                                                "diff_ci_high", "verdict"]))
+                                                "median_other_2n", "n_trials", "median_gain", "gain_ci_low",
+                                                "gain_ci_high", "verdict"]))
+        parts.append("\n*gain*: ASP at n against the other method at 2n, per trial, in metric units with positive = "
+                     "ASP better whichever way the metric points; *beats*: the gain's whole interval is above 0.\n")
     parts.append("\nSmallest paired count whose median reaches the threshold:\n\n")
     parts.append(to_markdown(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
                                                "min_paired_reaching", "median_there"]))
@@ -289,7 +286,8 @@ METHODS_TEXT = """\
   Holm-corrected over all counts and opponents of the condition.
 - **Data efficiency.** The smallest paired count whose group median reaches the threshold; and
   the paper's claim, checked directly: median of ASP at n against the other method at 2n, with
-  a bootstrap interval of the median per-trial difference.
+  a bootstrap interval of the median per-trial gain of ASP (positive = ASP better, for either
+  metric direction).
 - **Trend with a knob.** Spearman's ρ between a numeric knob (≥ 3 values) and the per-block
   difference ASP − other.
 - Metric directions come from the rows (`<metric>_higher_is_better`, `metric_directions`).

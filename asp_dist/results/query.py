@@ -1,21 +1,17 @@
-"""Reading a sweep's result rows, and ad-hoc queries over them (`asp-dist query`).
+"""Ad-hoc reading of result rows from several sources, and queries over them (`asp-dist query`).
 
-A sweep directory ``results/<sweep>/`` holds one Parquet file per finished cell under
-``cells/`` (nested ``domain=…/method=…`` folders). This module finds those files itself
-(no dependency on the sweep service's reader), checks that their schemas agree, and gives
-the rows to pandas (the stats job), to pyarrow.dataset, or to DuckDB as a view named
-``cells`` (``--sql``).
-
-Accepted inputs, alone or mixed: a sweep directory (its ``cells/`` is read), any directory
-of Parquet files (read recursively), or single ``.parquet`` files. Names that start with
-``.`` or ``_`` are temp files of an unfinished write and are ignored, and so is a ``stats/``
-folder directly inside a given directory (the stats job's own output tables).
+Accepted inputs, alone or mixed: a sweep (a directory or a bare name under ``--results``; its
+finished cells are listed by asp_dist.results.store, which owns the sweep layout), any other
+directory of Parquet files (read recursively, leaving out a ``stats/`` folder directly inside
+it: the stats job's own tables), or single ``.parquet`` files such as the merged datasets in
+results/examples/. Their schemas are checked to agree (they need not be the pinned row schema:
+merged or older files are read too), then the rows go to pandas (the stats job), to
+pyarrow.dataset, or to DuckDB as a view named ``cells`` (``--sql``).
 """
 
 from __future__ import annotations
 
 import difflib
-import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,20 +22,18 @@ import pyarrow as pa
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
-from asp_dist.spec import SpecError
+from asp_dist.errors import SchemaError, SpecError
+from asp_dist.results import store
 
 KEY_COLUMNS = ("domain", "method", "paired", "trial")
 DEFAULT_ORDER = ("domain", "method", "paired", "trial")
 FORMATS = ("table", "csv", "json", "parquet")
-
-
-class SchemaMismatch(SpecError):
-    """Result files whose columns cannot be read as one table."""
+STATS_DIR = "stats"  # the stats job's output tables inside a sweep or --out directory
 
 
 @dataclass
 class Inputs:
-    """The Parquet files behind one or more sweeps, and the sweep directories among the inputs."""
+    """The Parquet files behind one or more inputs, and the sweep directories among the inputs."""
 
     files: list[Path]
     sweep_dirs: list[Path] = field(default_factory=list)
@@ -50,40 +44,32 @@ class Inputs:
         return ds.dataset([str(f) for f in self.files], schema=self.schema, format="parquet")
 
 
-def _visible(path: Path, root: Path) -> bool:
-    parts = path.relative_to(root).parts
-    return not any(p.startswith((".", "_")) for p in parts)
+def _loose_files(path: Path) -> list[Path]:
+    """Parquet files of a directory that is not a sweep (its top-level stats/ folder left out)."""
+    return sorted(f for f in path.rglob("*.parquet")
+                  if f.is_file() and store.visible(f, path) and f.relative_to(path).parts[0] != STATS_DIR)
 
 
-def locate_sweep(name_or_path: str | Path) -> Path:
-    """A path as given, or results/<name> for a bare sweep name (as `asp-dist status NAME` takes)."""
-    path = Path(name_or_path)
-    if not path.exists() and (Path("results") / path).is_dir():
-        return Path("results") / path
-    return path
-
-
-def cell_files(paths: Sequence[str | Path]) -> Inputs:
-    """List the result files behind the given sweep directories, directories or files."""
+def find_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS) -> Inputs:
+    """The result files behind the given sweeps (names under `results`, or paths), directories or files."""
     if not paths:
-        raise SpecError("no input given: pass a sweep directory (results/<sweep>), a directory or .parquet files")
+        raise SpecError("no input given: pass a sweep name or directory, a directory or .parquet files")
     files: list[Path] = []
     sweeps: list[Path] = []
     for raw in paths:
-        path = locate_sweep(raw)
+        path = store.locate_sweep(raw, results)
         if not path.exists():
-            raise SpecError(f"{path} does not exist; pass a sweep name, or a directory such as results/<sweep>")
+            raise SpecError(f"{path} does not exist; pass a sweep name (under --results {results}), "
+                            f"a sweep directory or .parquet files")
         if path.is_file():
             if path.suffix != ".parquet":
                 raise SpecError(f"{path} is not a .parquet file")
             files.append(path)
-            continue
-        root = path / "cells" if (path / "cells").is_dir() else path
-        if root != path:
+        elif store.is_sweep_dir(path):
             sweeps.append(path)
-        found = sorted(f for f in root.rglob("*.parquet")
-                       if _visible(f, root) and f.is_file() and not (root == path and f.relative_to(root).parts[0] == "stats"))
-        files.extend(found)
+            files.extend(store.cell_files(path))
+        else:
+            files.extend(_loose_files(path))
     unique = list(dict.fromkeys(f.resolve() for f in files))
     if not unique:
         raise SpecError(f"no finished cells (*.parquet) found under {', '.join(map(str, paths))}")
@@ -112,7 +98,7 @@ _CANONICAL = {"bool": pa.bool_(), "int": pa.int64(), "float": pa.float64(), "str
 
 
 def unified_schema(files: Sequence[Path]) -> pa.Schema:
-    """One schema for all files, or SchemaMismatch naming the first column that cannot be unified.
+    """One schema for all files, or SchemaError naming the first column that cannot be unified.
 
     Null-typed columns (all values missing in a file) take the other files' type; integers
     and floats widen to float; every other disagreement is refused."""
@@ -122,15 +108,15 @@ def unified_schema(files: Sequence[Path]) -> pa.Schema:
         try:
             schema = pq.read_schema(f)
         except (pa.ArrowException, OSError) as err:
-            raise SchemaMismatch(f"cannot read {f}: {err}") from None
+            raise SchemaError(f"cannot read {f}: {err}") from None
         missing = [k for k in KEY_COLUMNS if k not in schema.names]
         if missing:
-            raise SchemaMismatch(f"{f} lacks the key column(s) {', '.join(missing)}; it is not a cell result row "
-                                 f"(expected columns {', '.join(KEY_COLUMNS)})")
+            raise SchemaError(f"{f} lacks the key column(s) {', '.join(missing)}; it is not a cell result row "
+                              f"(expected columns {', '.join(KEY_COLUMNS)})")
         for fld in schema:
             kind = _kind(fld.type)
             if kind not in _CANONICAL:
-                raise SchemaMismatch(f"column {fld.name!r} in {f} has unsupported type {fld.type}")
+                raise SchemaError(f"column {fld.name!r} in {f} has unsupported type {fld.type}")
             if fld.name not in kinds:
                 kinds[fld.name] = (kind, f)
                 order.append(fld.name)
@@ -143,60 +129,31 @@ def unified_schema(files: Sequence[Path]) -> pa.Schema:
             elif {seen, kind} == {"int", "float"}:
                 kinds[fld.name] = ("float", f)
             else:
-                raise SchemaMismatch(f"schema mismatch: column {fld.name!r} is {seen} in {where} but {kind} in {f}; "
-                                     "these files come from different code versions or tools, read them separately")
+                raise SchemaError(f"schema mismatch: column {fld.name!r} is {seen} in {where} but {kind} in {f}; "
+                                  "these files come from different code versions or tools, read them separately")
     for key, numeric in (("paired", True), ("trial", True), ("domain", False), ("method", False)):
         kind, where = kinds[key]
         if (kind in ("int", "float")) != numeric and kind != "null":
-            raise SchemaMismatch(f"key column {key!r} is {kind} in {where}; expected {'an integer' if numeric else 'text'}")
+            expected = "an integer" if numeric else "text"
+            raise SchemaError(f"key column {key!r} is {kind} in {where}; expected {expected}")
     return pa.schema([(name, _CANONICAL[kinds[name][0]]) for name in order])
 
 
-def open_inputs(paths: Sequence[str | Path]) -> Inputs:
-    inputs = cell_files(paths)
+def open_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS) -> Inputs:
+    """find_inputs, and the one schema their files are read with (SchemaError when they disagree)."""
+    inputs = find_inputs(paths, results)
     inputs.schema = unified_schema(inputs.files)
     return inputs
 
 
-def load_rows(paths: Sequence[str | Path] | Inputs) -> pd.DataFrame:
-    """All rows of the given sweeps as one DataFrame (schema-checked), sorted by the key columns."""
-    inputs = paths if isinstance(paths, Inputs) else open_inputs(paths)
+def load_rows(paths: Sequence[str | Path] | Inputs, results: str | Path = store.DEFAULT_RESULTS) -> pd.DataFrame:
+    """All rows of the given inputs as one DataFrame (schema-checked), sorted by the key columns."""
+    inputs = paths if isinstance(paths, Inputs) else open_inputs(paths, results)
     if inputs.schema is None:
         inputs.schema = unified_schema(inputs.files)
     table = inputs.dataset().to_table()
     df = table.to_pandas()
     return df.sort_values(list(DEFAULT_ORDER), kind="stable").reset_index(drop=True)
-
-
-def read_manifest_ids(sweep_dir: Path) -> list[str] | None:
-    """Cell ids of the planned grid from ``manifest.json``, read defensively (None if absent or unreadable).
-
-    Accepts {"cells": [ids] | {id: spec} | [{"cell_id": ...}]}, {"cell_ids": [...]}, or a bare list."""
-    path = Path(sweep_dir) / "manifest.json"
-    if not path.is_file():
-        return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if isinstance(data, dict):
-        for key in ("cells", "cell_ids", "grid", "expected"):
-            if key in data:
-                data = data[key]
-                break
-        else:
-            return None
-    if isinstance(data, dict):
-        return [str(k) for k in data]
-    if isinstance(data, list):
-        ids = []
-        for item in data:
-            if isinstance(item, str):
-                ids.append(item)
-            elif isinstance(item, dict) and "cell_id" in item:
-                ids.append(str(item["cell_id"]))
-        return ids
-    return None
 
 
 # ---- queries ------------------------------------------------------------------------------------
@@ -211,7 +168,8 @@ def connect(inputs: Inputs):
 
     con = duckdb.connect()
     con.execute("SET threads TO 1")  # CPU is shared; queries over a sweep are small
-    con.execute(f"CREATE VIEW cells AS SELECT * FROM read_parquet({_sql_literal_list(inputs.files)}, union_by_name = true)")
+    files = _sql_literal_list(inputs.files)
+    con.execute(f"CREATE VIEW cells AS SELECT * FROM read_parquet({files}, union_by_name = true)")
     return con
 
 
@@ -229,9 +187,10 @@ def check_columns(wanted: Sequence[str], available: Sequence[str]) -> None:
 
 
 def run_query(paths: Sequence[str | Path], where: str | None = None, columns: Sequence[str] | None = None,
-              sql: str | None = None, limit: int | None = None) -> pd.DataFrame:
-    """Rows of the sweep(s) matching a SQL WHERE expression, or the result of a full SQL query on `cells`."""
-    inputs = open_inputs(paths)
+              sql: str | None = None, limit: int | None = None,
+              results: str | Path = store.DEFAULT_RESULTS) -> pd.DataFrame:
+    """Rows of the input(s) matching a SQL WHERE expression, or the result of a full SQL query on `cells`."""
+    inputs = open_inputs(paths, results)
     if sql and (where or columns):
         raise SpecError("--sql is a whole query; put the filter and the columns inside it instead of --where/--columns")
     con = connect(inputs)
@@ -263,18 +222,21 @@ def write_result(df: pd.DataFrame, fmt: str = "table", out: str | Path | None = 
     """Write a query result in the chosen format to `out` (or stdout; parquet needs `out`)."""
     if fmt not in FORMATS:
         raise SpecError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if fmt == "parquet":
-        if out is None:
-            raise SpecError("--format parquet needs --out FILE")
-        pq.write_table(pa.Table.from_pandas(df, preserve_index=False), out)
-        return
+    if fmt == "parquet" and out is None:
+        raise SpecError("--format parquet needs --out FILE")
     if fmt == "table":
         text = df.to_string(index=False) + "\n" if len(df) else "(no rows)\n"
     elif fmt == "csv":
         text = df.to_csv(index=False)
-    else:
+    elif fmt == "json":
         text = df.to_json(orient="records", lines=True, date_format="iso")
     if out is None:
         sys.stdout.write(text)
-    else:
-        Path(out).write_text(text)
+        return
+    try:
+        if fmt == "parquet":
+            pq.write_table(pa.Table.from_pandas(df, preserve_index=False), out)
+        else:
+            Path(out).write_text(text)
+    except OSError as e:  # a missing or read-only directory: the user's --out
+        raise SpecError(f"cannot write --out {out}: {e.strerror or e}") from None

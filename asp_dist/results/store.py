@@ -1,6 +1,6 @@
-"""The Parquet result store of a sweep: pinned schema, one atomic file per cell, reading.
+"""The result store of a sweep: its directory layout, writing, failures, manifest, and THE reader.
 
-Layout of one sweep (``results/<sweep>/``)::
+Layout of one sweep (``<results>/<sweep>/``)::
 
     manifest.json                        the grid (resolved specs) and its hash
     cells/domain=<d>/method=<m>/<cell_id>.parquet   one row per finished cell
@@ -9,67 +9,107 @@ Layout of one sweep (``results/<sweep>/``)::
     tune/                                Ray Tune's experiment state and checkpoints
 
 The Parquet file of a cell is the record that the cell is done: it is written once, under a
-fixed name, through a hidden temp file and an atomic link/rename, and never overwritten.
+fixed name, through a hidden temp file and an atomic link/rename, and never overwritten. Names
+that start with ``.`` or ``_`` are temp files of an unfinished write and are never read.
 
 ``domain`` and ``method`` are stored dictionary-encoded inside each file. That is what lets
 the hive-style directories and the same-named columns agree: pandas.read_parquet(dir),
 pyarrow.dataset.dataset(dir) and DuckDB read_parquet('dir/**/*.parquet') all read the
 directory as-is (plain string columns would make pandas fail with "Unable to merge").
-No Ray import here: the stats job and tests read results without starting Ray.
+
+Everything that knows this layout is here; the sweep ledger, ``asp-dist query`` and the stats
+job ask this module. No Ray import: results are read without starting Ray.
 """
 
 from __future__ import annotations
 
 import json
-import re
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pyarrow as pa
 
+from asp_dist.errors import SchemaError
 from asp_dist.fsutil import atomic_write, write_table_once
 from asp_dist.training.row import PARTITION_COLUMNS, row_table, schema
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 CELLS_DIR = "cells"
 FAILED_DIR = "failed"
+BASES_DIR = "bases"
 MANIFEST = "manifest.json"
-SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
+DEFAULT_RESULTS = "results"
 
 
-# ---- paths -----------------------------------------------------------------------------------
-def cells_dir(sweep_dir: Path) -> Path:
+# ---- layout ------------------------------------------------------------------------------------
+def cells_dir(sweep_dir: str | Path) -> Path:
     return Path(sweep_dir) / CELLS_DIR
 
 
-def cell_path(sweep_dir: Path, domain: str, method: str, cell_id: str) -> Path:
+def bases_dir(sweep_dir: str | Path) -> Path:
+    return Path(sweep_dir) / BASES_DIR
+
+
+def cell_path(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> Path:
     return cells_dir(sweep_dir) / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
 
 
-def is_done(sweep_dir: Path, domain: str, method: str, cell_id: str) -> bool:
+def is_sweep_dir(path: str | Path) -> bool:
+    """A directory the sweep service wrote (it has a manifest or a cells/ folder)."""
+    path = Path(path)
+    return (path / MANIFEST).is_file() or (path / CELLS_DIR).is_dir()
+
+
+def locate_sweep(name_or_path: str | Path, results: str | Path = DEFAULT_RESULTS) -> Path:
+    """A path as given, or ``<results>/<name>`` for a bare sweep name (as `asp-dist status NAME` takes)."""
+    path = Path(name_or_path).expanduser()
+    candidate = Path(results).expanduser() / path
+    if not path.exists() and len(path.parts) == 1 and candidate.is_dir():
+        return candidate
+    return path
+
+
+def visible(path: Path, root: Path) -> bool:
+    """False for a file inside a hidden or temp name below `root` (an unfinished write)."""
+    return not any(p.startswith((".", "_")) for p in path.relative_to(root).parts)
+
+
+def cell_files(sweep_dir: str | Path) -> list[Path]:
+    """The finished cells' Parquet files of a sweep, sorted; temp files of unfinished writes are left out."""
+    root = cells_dir(sweep_dir)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
+
+
+def done_cell_ids(sweep_dir: str | Path) -> set[str]:
+    """Cells with a finished Parquet file (the file name is the cell id)."""
+    return {p.stem for p in cell_files(sweep_dir)}
+
+
+def is_done(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> bool:
     return cell_path(sweep_dir, domain, method, cell_id).exists()
 
 
-def done_cell_ids(sweep_dir: Path) -> set[str]:
-    """Cells with a finished Parquet file (hidden temp files are ignored)."""
-    root = cells_dir(sweep_dir)
-    if not root.exists():
-        return set()
-    return {p.stem for p in root.glob("domain=*/method=*/*.parquet") if not p.name.startswith((".", "_"))}
-
-
 # ---- writing -----------------------------------------------------------------------------------
-def write_row(sweep_dir: Path, row: dict[str, Any], sweep_id: str) -> bool:
+def write_row(sweep_dir: str | Path, row: dict[str, Any], sweep_id: str) -> bool:
     """Write one finished cell. Returns False (and writes nothing) if the cell already has a file."""
     row = dict(row, sweep_id=sweep_id)
     table = row_table(row)  # validate before touching the disk
-    final = cell_path(sweep_dir, row["domain"], row["method"], row["cell_id"])
-    return write_table_once(table, final)
+    return write_table_once(table, cell_path(sweep_dir, row["domain"], row["method"], row["cell_id"]))
 
 
-def record_failure(sweep_dir: Path, cell_id: str, domain: str, method: str, error: str) -> None:
+# ---- failures ----------------------------------------------------------------------------------
+def _failure_path(sweep_dir: str | Path, cell_id: str) -> Path:
+    return Path(sweep_dir) / FAILED_DIR / f"{cell_id}.json"
+
+
+def record_failure(sweep_dir: str | Path, cell_id: str, domain: str, method: str, error: str) -> None:
     """Record a cell that kept failing; it stays out of the dataset and is retried on resume."""
-    path = Path(sweep_dir) / FAILED_DIR / f"{cell_id}.json"
+    path = _failure_path(sweep_dir, cell_id)
     previous = json.loads(path.read_text()) if path.exists() else {}
     info = {"cell_id": cell_id, "domain": domain, "method": method, "error": error[-4000:],
             "failed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -77,47 +117,61 @@ def record_failure(sweep_dir: Path, cell_id: str, domain: str, method: str, erro
     atomic_write(path, json.dumps(info, indent=1))
 
 
-def clear_failure(sweep_dir: Path, cell_id: str) -> None:
-    path = Path(sweep_dir) / FAILED_DIR / f"{cell_id}.json"
-    if path.exists():
-        path.unlink()
+def clear_failure(sweep_dir: str | Path, cell_id: str) -> None:
+    _failure_path(sweep_dir, cell_id).unlink(missing_ok=True)
 
 
-def failed_cells(sweep_dir: Path) -> dict[str, dict[str, Any]]:
+def failed_cells(sweep_dir: str | Path) -> dict[str, dict[str, Any]]:
+    """cell_id -> the failure record (cell_id, domain, method, error, failed_at, times_failed)."""
     root = Path(sweep_dir) / FAILED_DIR
-    if not root.exists():
+    if not root.is_dir():
         return {}
-    return {p.stem: json.loads(p.read_text()) for p in sorted(root.glob("*.json")) if not p.name.startswith(".")}
+    return {p.stem: json.loads(p.read_text()) for p in sorted(root.glob("*.json")) if visible(p, root)}
+
+
+def last_error_line(record: dict[str, Any], width: int = 160) -> str:
+    """The last line of a failure record's error (the exception), for one-line listings."""
+    lines = str(record.get("error", "")).strip().splitlines()
+    return (lines[-1] if lines else "failed")[:width]
 
 
 # ---- manifest ----------------------------------------------------------------------------------
-def write_manifest(sweep_dir: Path, manifest: dict[str, Any]) -> None:
+def write_manifest(sweep_dir: str | Path, manifest: dict[str, Any]) -> None:
+    """Store the grid of a sweep. Its shape is the ledger's (asp_dist.sweep.ledger.new_manifest):
+    name, space, grid_hash, cells (ids) and specs (resolved dicts, aligned with cells)."""
     atomic_write(Path(sweep_dir) / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True))
 
 
-def read_manifest(sweep_dir: Path) -> dict[str, Any] | None:
+def read_manifest(sweep_dir: str | Path) -> dict[str, Any] | None:
+    """The sweep's manifest, or None when it has none. A file that is not one is an error, not 'no grid'."""
     path = Path(sweep_dir) / MANIFEST
-    return json.loads(path.read_text()) if path.exists() else None
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except ValueError as e:
+        raise SchemaError(f"{path} is not valid JSON ({e}); it should hold the sweep's grid") from None
+    cells = manifest.get("cells") if isinstance(manifest, dict) else None
+    if not isinstance(cells, list) or not all(isinstance(c, str) for c in cells):
+        raise SchemaError(f"{path} is not a sweep manifest: it needs a list of cell ids under 'cells'")
+    return manifest
 
 
 # ---- reading -----------------------------------------------------------------------------------
-def read_table(sweep_dir: Path) -> pa.Table:
+def read_table(sweep_dir: str | Path) -> pa.Table:
     """All finished rows of a sweep as one Arrow table with the pinned schema."""
     import pyarrow.dataset as ds
 
-    root = cells_dir(sweep_dir)
-    files = sorted(str(p) for p in root.glob("domain=*/method=*/*.parquet") if not p.name.startswith((".", "_"))) \
-        if root.exists() else []
+    files = [str(p) for p in cell_files(sweep_dir)]
     if not files:
         return schema().empty_table()
     # Explicit schema: files written before a domain was added lack its metric columns -> null.
     return ds.dataset(files, schema=schema(), format="parquet").to_table()
 
 
-def read_rows(sweep_dir: Path) -> "pandas.DataFrame":  # noqa: F821
-    """All finished rows of a sweep as a DataFrame (domain and method as plain strings)."""
+def read_rows(sweep_dir: str | Path) -> pd.DataFrame:
+    """All finished rows of a sweep as a DataFrame (domain and method as plain strings), by cell id."""
     df = read_table(sweep_dir).to_pandas()
     for col in PARTITION_COLUMNS:
         df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
     return df.sort_values("cell_id", kind="stable").reset_index(drop=True)
-

@@ -1,8 +1,10 @@
-"""Terminal progress of a sweep: cells done / running / failed / pending, elapsed time, ETA.
+"""The counter line of a running sweep: cells done / running / failed / pending, elapsed time, ETA.
 
-Knows nothing of Ray: the sweep feeds it counts. On a terminal one line is redrawn in place
-(at most every ``min_interval_s``); into a pipe or log file a full line is printed whenever the
-counts change, and otherwise at most every ``log_interval_s``, so logs stay short.
+A cell's own progress is something else: ProgressFn callbacks (asp_dist.domains.contract), which
+`asp-dist cell` prints with cli.CellProgressPrinter. Knows nothing of Ray: the sweep feeds it
+counts. On a terminal one line is redrawn in place (at most every ``min_interval_s``); into a
+pipe or log file a full line is printed whenever the counts change, and otherwise at most every
+``log_interval_s``, so logs stay short.
 """
 
 from __future__ import annotations
@@ -34,7 +36,9 @@ class Counts:
         return max(0, self.total - self.done - self.running - self.failed)
 
 
-class SweepProgress:
+class SweepCounter:
+    """Counts of one sweep run, printed as one line: redrawn on a terminal, appended in a log."""
+
     def __init__(self, name: str, total: int, already_done: int = 0, stream: TextIO | None = None,
                  min_interval_s: float = 0.5, log_interval_s: float = 30.0):
         self.name = name

@@ -65,7 +65,8 @@ def space_file(name_or_path: str) -> Path:
 def _axis_values(space: str, field: str, raw: Any) -> list[Any]:
     if isinstance(raw, dict):
         if set(raw) != {"first", "last"} or not all(isinstance(v, int) for v in raw.values()):
-            raise SweepError(f"space {space}: axis {field} must be a list or {{ first = INT, last = INT }}, got {raw!r}")
+            raise SweepError(f"space {space}: axis {field} must be a list or {{ first = INT, last = INT }}, "
+                             f"got {raw!r}")
         if raw["last"] < raw["first"]:
             raise SweepError(f"space {space}: axis {field} has last < first ({raw!r})")
         return list(range(raw["first"], raw["last"] + 1))
@@ -93,7 +94,8 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
         raise SweepError(f"space {space}: invalid TOML in {path}: {e}") from None
     unknown = sorted(set(data) - SPACE_KEYS)
     if unknown:
-        raise SweepError(f"space {space}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(SPACE_KEYS))}")
+        raise SweepError(f"space {space}: unknown key(s) {', '.join(unknown)}; "
+                         f"allowed: {', '.join(sorted(SPACE_KEYS))}")
     cells: list[dict[str, Any]] = []
     for included in data.get("include", []):
         cells += load_space(included, _seen + (space,))
@@ -105,9 +107,11 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
         label = f"{space}[{grid.get('name', i)}]"
         unknown = sorted(set(grid) - GRID_KEYS)
         if unknown:
-            raise SweepError(f"space {label}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(GRID_KEYS))}")
+            raise SweepError(f"space {label}: unknown key(s) {', '.join(unknown)}; "
+                             f"allowed: {', '.join(sorted(GRID_KEYS))}")
         grid_fixed = {**fixed, **{k: _coerce(label, k, v) for k, v in grid.get("fixed", {}).items()}}
-        axes = {k: [_coerce(label, k, v) for v in _axis_values(label, k, raw)] for k, raw in grid.get("axes", {}).items()}
+        axes = {k: [_coerce(label, k, v) for v in _axis_values(label, k, raw)]
+                for k, raw in grid.get("axes", {}).items()}
         overlap = sorted(set(axes) & set(grid_fixed))
         if overlap:
             raise SweepError(f"space {label}: {', '.join(overlap)} is both an axis and fixed; keep one")

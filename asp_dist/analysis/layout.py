@@ -1,0 +1,142 @@
+"""How one domain's rows are organised, read from the rows alone: conditions, treatments, score.
+
+- *knob*: a CellSpec field other than the identity (domain, method, paired, trial, root_seed)
+  that takes more than one value among a domain's rows of one method. A knob varied within
+  every method (latent size, skew) defines a *condition*: methods are compared within it.
+  A knob varied only within some methods (say λ1 of ASP) splits that method into *treatments*
+  (``asp[lambda_unpaired=0.5]``) that are compared like methods.
+- *block*: one (root_seed, trial, paired) of a condition. Within a block PC/OSP/ASP share the
+  base model, the paired and unpaired sets and the initial weights, so comparisons are paired
+  over blocks.
+- *score*: the metric oriented so that larger is better (negated when the rows say lower is better).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any, Iterator, Sequence
+
+import pandas as pd
+
+from asp_dist.errors import SpecError
+from asp_dist.spec import FIELD_NAMES
+
+IDENTITY = ("domain", "method", "paired", "trial", "root_seed")
+NOT_KNOBS = frozenset(IDENTITY) | {"record_figure_data"}
+METHOD_ORDER = ("pc", "osp", "asp")
+
+
+@dataclass
+class DomainLayout:
+    """How one domain's rows are organised: direction, conditions and treatments."""
+
+    domain: str
+    higher_is_better: bool
+    shared_knobs: list[str]
+    method_knobs: dict[str, list[str]]  # method -> knobs varied only within (some) methods
+
+    def condition_of(self, values: dict[str, Any]) -> str:
+        """The condition label of a row or spec dict (its shared knobs' values)."""
+        if not self.shared_knobs:
+            return "all"
+        return ", ".join(f"{k}={fmt_value(values.get(k))}" for k in self.shared_knobs)
+
+
+def metric_direction(rows: pd.DataFrame, metric: str) -> bool:
+    """True if higher is better for `metric` in these rows (one domain), read from the rows themselves."""
+    domain = rows["domain"].iloc[0]
+    flag_col = f"{metric}_higher_is_better"
+    if flag_col in rows and rows[flag_col].notna().any():
+        values = set(rows[flag_col].dropna().astype(bool))
+        if len(values) > 1:
+            raise SpecError(f"rows of domain {domain} disagree on whether higher {metric} is better")
+        return values.pop()
+    if "metric_directions" in rows:
+        name = metric.removeprefix("eval_")
+        found = set()
+        for text in rows["metric_directions"].dropna().unique():
+            try:
+                found.add(json.loads(text).get(name))
+            except (TypeError, ValueError, AttributeError):
+                continue
+        found.discard(None)
+        if len(found) == 1:
+            return found.pop() == "higher"
+        if len(found) > 1:
+            raise SpecError(f"rows of domain {domain} disagree on the direction of {metric}")
+    raise SpecError(f"rows of domain {domain} do not say whether higher or lower {metric} is better "
+                    f"(no {flag_col} column, no entry {metric.removeprefix('eval_')!r} in metric_directions)")
+
+
+def domain_layout(rows: pd.DataFrame, metric: str) -> DomainLayout:
+    domain = rows["domain"].iloc[0]
+    candidates = [c for c in FIELD_NAMES if c in rows.columns and c not in NOT_KNOBS]
+    methods = list(rows["method"].unique())
+    shared, by_method = [], {m: [] for m in methods}
+    for col in candidates:
+        varied_in = [m for m in methods if rows.loc[rows["method"] == m, col].nunique(dropna=False) > 1]
+        if not varied_in:
+            continue
+        if len(varied_in) == len(methods):
+            shared.append(col)
+        else:
+            for m in varied_in:
+                by_method[m].append(col)
+    return DomainLayout(domain, metric_direction(rows, metric), shared, by_method)
+
+
+def fmt_value(v: Any) -> str:
+    if isinstance(v, float) and v.is_integer():
+        return str(int(v))
+    if isinstance(v, float):
+        return f"{v:g}"
+    return str(v)
+
+
+def label_rows(rows: pd.DataFrame, layout: DomainLayout, metric: str) -> pd.DataFrame:
+    """Add `condition` (shared knob values), `treatment` (method + method-only knobs) and `score`."""
+    rows = rows.copy()
+    rows["condition"] = [layout.condition_of(dict(zip(layout.shared_knobs, vals)))
+                         for vals in rows[layout.shared_knobs].itertuples(index=False, name=None)]
+    treatments = []
+    for rec in rows.to_dict("records"):
+        knobs = layout.method_knobs.get(rec["method"], [])
+        inside = ", ".join(f"{k}={fmt_value(rec[k])}" for k in knobs)
+        treatments.append(rec["method"] + (f"[{inside}]" if knobs else ""))
+    rows["treatment"] = treatments
+    values = pd.to_numeric(rows[metric], errors="coerce").astype(float)
+    rows["score"] = values if layout.higher_is_better else -values
+    if "root_seed" not in rows:
+        rows["root_seed"] = 0
+    return rows
+
+
+def treatment_order(names: Sequence[str]) -> list[str]:
+    def key(t: str) -> tuple:
+        m = t.split("[")[0]
+        return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), t)
+
+    return sorted(set(names), key=key)
+
+
+def condition_key(condition: str) -> tuple:
+    """Natural order of condition labels: "vae_latent_dim=8" before "vae_latent_dim=16"."""
+    key = []
+    for part in condition.split(", "):
+        name, _, value = part.partition("=")
+        try:
+            key.append((name, 0, float(value), ""))
+        except ValueError:
+            key.append((name, 1, 0.0, value))
+    return tuple(key)
+
+
+def by_condition(rows: pd.DataFrame) -> Iterator[tuple[str, pd.DataFrame]]:
+    """(condition, rows) in natural condition order."""
+    for cond in sorted(rows["condition"].unique(), key=condition_key):
+        yield cond, rows[rows["condition"] == cond]
+
+
+def is_asp(treatment: str) -> bool:
+    return treatment.split("[")[0] == "asp"

@@ -1,0 +1,190 @@
+"""The ledger of a sweep: its name and directory, its lock, its grid (manifest) and its status.
+
+Everything a sweep checks and records around running cells, and nothing that runs them: no Ray
+import, so `asp-dist status`, input validation and their tests are fast and need no cluster.
+The files themselves (manifest, finished cells, failures) are laid out by asp_dist.results.store;
+this module decides what they must say for a sweep to start, continue or be reported.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import re
+import socket
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+from asp_dist import __version__
+from asp_dist.errors import SpecError, SweepError
+from asp_dist.results import store
+from asp_dist.spec import CellSpec
+from asp_dist.sweep.spaces import grid_hash
+
+SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
+LOCK_FILE = ".lock"
+
+
+@dataclass
+class SweepResult:
+    """Where a sweep run left its grid."""
+
+    name: str
+    sweep_dir: Path
+    total: int
+    done: int
+    failed: int
+
+    @property
+    def pending(self) -> int:
+        return self.total - self.done - self.failed
+
+
+# ---- name and directory --------------------------------------------------------------------------
+def sweep_dir_for(results: str | Path, name: str) -> Path:
+    """``<results>/<name>``, absolute; refuses a name that is not a plain directory name."""
+    if not SWEEP_NAME_RE.match(name):
+        raise SweepError(f"invalid sweep name {name!r}: use letters, digits, '.', '_' or '-' (at most 64)")
+    return Path(results).expanduser().resolve() / name
+
+
+def check_sweep_dir(sweep_dir: Path) -> None:
+    """Refuse to start in a directory that holds something other than a sweep, or cannot be written."""
+    if sweep_dir.exists() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
+    try:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=sweep_dir, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({e.strerror or e}); "
+                         f"choose another with --results") from None
+
+
+def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float) -> None:
+    """The numbers of a run, refused before Ray is imported."""
+    if workers < 1:
+        raise SweepError(f"--workers must be >= 1, got {workers}")
+    if max_failures < 0:
+        raise SweepError(f"--max-failures must be >= 0, got {max_failures}")
+    if not checkpoint_every_s > 0:
+        raise SweepError(f"--checkpoint-every must be > 0 seconds, got {checkpoint_every_s}")
+
+
+# ---- lock ----------------------------------------------------------------------------------------
+@contextmanager
+def sweep_lock(sweep_dir: Path) -> Iterator[None]:
+    """Refuse a second concurrent run of one sweep. fcntl: the OS drops the lock when its holder dies,
+    even by SIGKILL, so a crashed run never blocks the resume."""
+    fh = open(sweep_dir / LOCK_FILE, "a+")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "another process"
+            raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
+                             f"or use another --name") from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {socket.gethostname()} since "
+                 f"{datetime.now(timezone.utc).isoformat(timespec='seconds')}")
+        fh.flush()
+        yield
+    finally:
+        fh.close()
+
+
+def lock_holder(sweep_dir: Path) -> str | None:
+    """Who holds the sweep's lock, or None if no run of the sweep is going on."""
+    path = sweep_dir / LOCK_FILE
+    if not path.exists():
+        return None
+    with open(path, "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            return fh.read().strip() or "unknown"
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    return None
+
+
+# ---- grid (manifest) -----------------------------------------------------------------------------
+def new_manifest(name: str, space: str, specs: list[CellSpec]) -> dict[str, Any]:
+    """The manifest of a new sweep: its grid as cell ids and resolved specs, and the grid's hash."""
+    return {"name": name, "space": space, "grid_hash": grid_hash(specs), "cells": [s.cell_id for s in specs],
+            "specs": [s.to_dict() for s in specs], "asp_dist_version": __version__,
+            "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def check_manifest(sweep_dir: Path, name: str, specs: list[CellSpec], space: str) -> dict[str, Any]:
+    """The sweep's manifest (a new one if it has none); refuses a grid that differs from the stored one."""
+    existing = store.read_manifest(sweep_dir)
+    if existing is None:
+        return new_manifest(name, space, specs)
+    digest, stored = grid_hash(specs), existing.get("grid_hash")
+    if stored != digest:
+        raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
+                         f"{existing.get('space')!r}, {len(existing['cells'])} cells, hash {stored}; "
+                         f"now {space!r}, {len(specs)} cells, hash {digest}); use another --name")
+    return existing
+
+
+def read_sweep(results: str | Path, name: str) -> tuple[Path, dict[str, Any]]:
+    """The directory and manifest of an existing sweep (for resume and status)."""
+    sweep_dir = sweep_dir_for(results, name)
+    manifest = store.read_manifest(sweep_dir)
+    if manifest is None:
+        raise SweepError(f"no sweep {name!r} under {sweep_dir.parent}; start it with "
+                         f"`asp-dist sweep SPACE --name {name}`")
+    return sweep_dir, manifest
+
+
+def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:
+    """The grid's specs, checked to resolve to the ids they were stored under."""
+    try:
+        specs = [CellSpec.from_dict(d).resolved() for d in manifest["specs"]]
+    except (KeyError, TypeError, SpecError) as e:
+        raise SweepError(f"sweep {manifest.get('name')!r}: its manifest's specs cannot be read ({e}); "
+                         f"start a new sweep name") from None
+    if [s.cell_id for s in specs] != manifest["cells"]:
+        raise SweepError(f"sweep {manifest['name']!r}: its cells no longer resolve to the stored ids "
+                         f"(CellSpec or domain defaults changed); start a new sweep name")
+    return specs
+
+
+def finished_and_failed(sweep_dir: Path, grid: Iterable[str]) -> tuple[set[str], set[str]]:
+    """Cells of the grid with a row, and cells recorded as failed that have no row (a retry may have won)."""
+    grid = set(grid)
+    done = store.done_cell_ids(sweep_dir) & grid
+    failed = (set(store.failed_cells(sweep_dir)) & grid) - done
+    return done, failed
+
+
+# ---- status --------------------------------------------------------------------------------------
+def sweep_status(name: str, results: str | Path = store.DEFAULT_RESULTS) -> str:
+    """Done / failed / pending counts per domain and method, whether a run is going on, and the failures."""
+    sweep_dir, manifest = read_sweep(results, name)
+    done, failed = finished_and_failed(sweep_dir, manifest["cells"])
+    failures = store.failed_cells(sweep_dir)
+    table: dict[tuple[str, str], list[int]] = {}
+    for cell_id, spec in zip(manifest["cells"], manifest["specs"]):
+        counts = table.setdefault((spec["domain"], spec["method"]), [0, 0, 0])
+        counts[0 if cell_id in done else 1 if cell_id in failed else 2] += 1
+    holder = lock_holder(sweep_dir)
+    lines = [f"sweep {name}: space {manifest['space']}, {len(manifest['cells'])} cells, grid {manifest['grid_hash']}, "
+             + (f"RUNNING ({holder})" if holder else "not running"),
+             f"{'domain':<12}{'method':<8}{'done':>7}{'failed':>8}{'pending':>9}"]
+    totals = [0, 0, 0]
+    for (domain, method), (d, f, p) in sorted(table.items()):
+        lines.append(f"{domain:<12}{method:<8}{d:>7}{f:>8}{p:>9}")
+        totals = [totals[0] + d, totals[1] + f, totals[2] + p]
+    lines.append(f"{'total':<20}{totals[0]:>7}{totals[1]:>8}{totals[2]:>9}")
+    for cell_id in sorted(failed):
+        lines.append(f"failed {cell_id}: {store.last_error_line(failures[cell_id])}")
+    return "\n".join(lines)

@@ -1,0 +1,129 @@
+"""The sweep ledger without Ray: names, the directory check, the lock (also after SIGKILL), the
+manifest against the grid, specs from the manifest, and the status text."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from asp_dist.errors import SchemaError, SweepError
+from asp_dist.results import store
+from asp_dist.sweep import ledger
+from asp_dist.sweep.spaces import expand
+
+
+@pytest.fixture(scope="module")
+def smoke_specs():
+    return expand("smoke")
+
+
+def test_names_are_plain_directory_names(tmp_path):
+    assert ledger.sweep_dir_for(tmp_path, "exp-1.b_2") == tmp_path.resolve() / "exp-1.b_2"
+    for bad in ("../up", "a/b", ".hidden", "", "x" * 65):
+        with pytest.raises(SweepError, match="invalid sweep name"):
+            ledger.sweep_dir_for(tmp_path, bad)
+
+
+def test_a_directory_that_is_not_a_sweep_is_refused(tmp_path, smoke_specs):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(SweepError, match="is not a sweep"):
+        ledger.check_sweep_dir(foreign)
+    ledger.check_sweep_dir(tmp_path / "new")  # created, and writable
+    store.write_manifest(tmp_path / "new", ledger.new_manifest("new", "smoke", smoke_specs))
+    (tmp_path / "new" / "stray.txt").write_text("x")
+    ledger.check_sweep_dir(tmp_path / "new")  # a sweep may hold other files
+
+
+def test_lock_refuses_a_second_run_and_dies_with_its_holder(tmp_path):
+    with ledger.sweep_lock(tmp_path):
+        assert ledger.lock_holder(tmp_path).startswith(f"pid {os.getpid()} on ")
+        with pytest.raises(SweepError, match="is already running \\(pid"):
+            with ledger.sweep_lock(tmp_path):
+                pass
+    assert ledger.lock_holder(tmp_path) is None
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path\n"
+                               "from asp_dist.sweep.ledger import sweep_lock\n"
+                               "with sweep_lock(Path(sys.argv[1])):\n"
+                               "    print('locked', flush=True); time.sleep(600)\n", str(tmp_path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        assert ledger.lock_holder(tmp_path).startswith(f"pid {holder.pid} on ")
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(30)
+    finally:
+        holder.kill()
+    deadline = time.monotonic() + 10
+    while ledger.lock_holder(tmp_path) is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert ledger.lock_holder(tmp_path) is None, "a killed holder's lock was not released"
+    with ledger.sweep_lock(tmp_path):
+        pass
+
+
+def test_manifest_keeps_the_grid_and_refuses_another(tmp_path, smoke_specs):
+    first = ledger.check_manifest(tmp_path, "exp", smoke_specs, "smoke")
+    assert first["cells"] == [s.cell_id for s in smoke_specs] and first["space"] == "smoke"
+    store.write_manifest(tmp_path, first)
+    assert ledger.check_manifest(tmp_path, "exp", list(reversed(smoke_specs)), "smoke") == first  # order-free
+    with pytest.raises(SweepError, match="was started with another grid .* 18 cells.* now 'other', 17 cells"):
+        ledger.check_manifest(tmp_path, "exp", smoke_specs[1:], "other")
+    assert ledger.specs_from_manifest(store.read_manifest(tmp_path)) == smoke_specs
+
+
+def test_specs_that_no_longer_resolve_to_their_ids_are_refused(smoke_specs):
+    manifest = json.loads(json.dumps(ledger.new_manifest("exp", "smoke", smoke_specs[:2])))
+    manifest["cells"][1] = "signaling-asp-p0-t0-0000000000"  # what a changed default would do
+    with pytest.raises(SweepError, match="no longer resolve to the stored ids"):
+        ledger.specs_from_manifest(manifest)
+    with pytest.raises(SweepError, match="manifest's specs cannot be read"):
+        ledger.specs_from_manifest({"name": "exp", "cells": []})
+
+
+def test_a_broken_manifest_is_an_error_not_a_missing_grid(tmp_path):
+    (tmp_path / store.MANIFEST).write_text("{not json")
+    with pytest.raises(SchemaError, match="not valid JSON"):
+        store.read_manifest(tmp_path)
+    (tmp_path / store.MANIFEST).write_text(json.dumps({"cell_ids": ["a"]}))
+    with pytest.raises(SchemaError, match="list of cell ids under 'cells'"):
+        ledger.read_sweep(tmp_path.parent, tmp_path.name)
+
+
+def test_status_counts_a_later_success_over_an_old_failure(tmp_path, smoke_specs):
+    sweep_dir = tmp_path / "exp"
+    sweep_dir.mkdir()
+    store.write_manifest(sweep_dir, ledger.new_manifest("exp", "smoke", smoke_specs))
+    first, second = smoke_specs[:2]
+    for spec in (first, second):
+        store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, "Traceback\nRuntimeError: boom")
+    # A failure record left by an earlier attempt of a cell that then finished.
+    store.write_row(sweep_dir, {**first.to_dict(), "cell_id": first.cell_id, "eval_mixed": 0.5}, sweep_id="exp")
+    done, failed = ledger.finished_and_failed(sweep_dir, [s.cell_id for s in smoke_specs])
+    assert done == {first.cell_id} and failed == {second.cell_id}
+    text = ledger.sweep_status("exp", tmp_path)
+    assert text.splitlines()[-2].split() == ["total", "1", "1", "16"]
+    assert text.splitlines()[-1] == f"failed {second.cell_id}: RuntimeError: boom"
+
+
+def test_status_and_refused_inputs_never_import_ray(tmp_path, smoke_specs):
+    sweep_dir = tmp_path / "exp"
+    sweep_dir.mkdir()
+    store.write_manifest(sweep_dir, ledger.new_manifest("exp", "smoke", smoke_specs))
+    code = ("import sys\n"
+            "from asp_dist.cli import main\n"
+            f"assert main(['status', 'exp', '--results', {str(tmp_path)!r}]) == 0\n"
+            f"assert main(['sweep', 'smoke', '--name', '../x', '--results', {str(tmp_path)!r}]) == 2\n"
+            f"assert main(['resume', 'ghost', '--results', {str(tmp_path)!r}]) == 2\n"
+            "assert 'ray' not in sys.modules, 'ray was imported'\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.splitlines()[-1].split() == ["total", "0", "0", "18"]
+
