@@ -291,7 +291,7 @@ def cmd_query(args: argparse.Namespace) -> int:
 
     columns = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
     df = run_query(args.sweeps, where=args.where, columns=columns, sql=args.sql, limit=args.limit,
-                   results=args.results)
+                   results=args.results, curves=args.curves)
     write_result(df, args.format, args.out)
     if args.out:
         print(f"{len(df)} rows -> {args.out}", file=sys.stderr)
@@ -393,6 +393,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output format (json = one object per line; parquet needs --out)")
     p.add_argument("--out", help="write to this file instead of stdout")
     p.add_argument("--limit", type=int, help="at most this many rows (with --where/--columns)")
+    p.add_argument("--curves", action="store_true",
+                   help="query the sweeps' learning curves (view `curves`: one row per cell and step) instead of `cells`")
     p.set_defaults(func=cmd_query)
     return ap
 

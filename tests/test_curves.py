@@ -46,3 +46,21 @@ def test_lambda_schedule_shows_in_the_curve(tiny):
     lam = [p["lambda_unpaired_now"] for p in curve]
     full = lam[-1]
     assert lam[0] < 0.05 * full and lam[24] == pytest.approx(full * 249 / 250) and lam[30] == full
+
+
+def test_curves_are_stored_once_and_read_back_and_queried(tiny, tmp_path):
+    from asp_dist.results import store
+    from asp_dist.results.query import run_query
+
+    spec = tiny("signaling", method="asp", paired=2, train_steps=100)
+    curve: list[dict] = []
+    row = run_cell(spec, curve=curve)
+    assert store.write_curve(tmp_path, row, curve) is True
+    assert store.write_curve(tmp_path, row, curve[:3]) is False, "a finished curve is never overwritten"
+    back = store.read_curves(tmp_path)
+    assert len(back) == len(curve) and set(back["cell_id"]) == {row["cell_id"]}
+    assert list(back["step"]) == [int(p["step"]) for p in curve]
+    assert back["loss_disc"].tolist() == pytest.approx([p["loss_disc"] for p in curve])
+    store.write_row(tmp_path, row, "test")
+    df = run_query([str(tmp_path)], sql="SELECT count(*) AS n, max(step) AS last FROM curves", curves=True)
+    assert (int(df["n"][0]), int(df["last"][0])) == (len(curve), 100)

@@ -50,8 +50,10 @@ def _loose_files(path: Path) -> list[Path]:
                   if f.is_file() and store.visible(f, path) and f.relative_to(path).parts[0] != STATS_DIR)
 
 
-def find_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS) -> Inputs:
-    """The result files behind the given sweeps (names under `results`, or paths), directories or files."""
+def find_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS,
+                curves: bool = False) -> Inputs:
+    """The result files behind the given sweeps (names under `results`, or paths), directories or files;
+    with `curves`, a sweep's learning curves instead of its cell rows."""
     if not paths:
         raise SpecError("no input given: pass a sweep name or directory, a directory or .parquet files")
     files: list[Path] = []
@@ -67,7 +69,7 @@ def find_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT
             files.append(path)
         elif store.is_sweep_dir(path):
             sweeps.append(path)
-            files.extend(store.cell_files(path))
+            files.extend(store.curve_files(path) if curves else store.cell_files(path))
         else:
             files.extend(_loose_files(path))
     unique = list(dict.fromkeys(f.resolve() for f in files))
@@ -139,9 +141,10 @@ def unified_schema(files: Sequence[Path]) -> pa.Schema:
     return pa.schema([(name, _CANONICAL[kinds[name][0]]) for name in order])
 
 
-def open_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS) -> Inputs:
+def open_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT_RESULTS,
+                curves: bool = False) -> Inputs:
     """find_inputs, and the one schema their files are read with (SchemaError when they disagree)."""
-    inputs = find_inputs(paths, results)
+    inputs = find_inputs(paths, results, curves)
     inputs.schema = unified_schema(inputs.files)
     return inputs
 
@@ -162,14 +165,14 @@ def _sql_literal_list(files: Iterable[Path]) -> str:
     return "[" + ", ".join("'" + str(f).replace("'", "''") + "'" for f in files) + "]"
 
 
-def connect(inputs: Inputs):
-    """A DuckDB connection with a view ``cells`` over exactly the inputs' files."""
+def connect(inputs: Inputs, view: str = "cells"):
+    """A DuckDB connection with a view (``cells``, or ``curves``) over exactly the inputs' files."""
     import duckdb
 
     con = duckdb.connect()
     con.execute("SET threads TO 1")  # CPU is shared; queries over a sweep are small
     files = _sql_literal_list(inputs.files)
-    con.execute(f"CREATE VIEW cells AS SELECT * FROM read_parquet({files}, union_by_name = true)")
+    con.execute(f"CREATE VIEW {view} AS SELECT * FROM read_parquet({files}, union_by_name = true)")
     return con
 
 
@@ -188,12 +191,14 @@ def check_columns(wanted: Sequence[str], available: Sequence[str]) -> None:
 
 def run_query(paths: Sequence[str | Path], where: str | None = None, columns: Sequence[str] | None = None,
               sql: str | None = None, limit: int | None = None,
-              results: str | Path = store.DEFAULT_RESULTS) -> pd.DataFrame:
-    """Rows of the input(s) matching a SQL WHERE expression, or the result of a full SQL query on `cells`."""
-    inputs = open_inputs(paths, results)
+              results: str | Path = store.DEFAULT_RESULTS, curves: bool = False) -> pd.DataFrame:
+    """Rows of the input(s) matching a SQL WHERE expression, or the result of a full SQL query on the
+    view `cells` (or `curves`: the sweeps' learning curves, with `curves`)."""
+    inputs = open_inputs(paths, results, curves)
+    view = "curves" if curves else "cells"
     if sql and (where or columns):
         raise SpecError("--sql is a whole query; put the filter and the columns inside it instead of --where/--columns")
-    con = connect(inputs)
+    con = connect(inputs, view)
     try:
         if sql:
             try:
@@ -205,8 +210,8 @@ def run_query(paths: Sequence[str | Path], where: str | None = None, columns: Se
             cols = list(columns) if columns else list(names)
             check_columns(cols, names)
             select = ", ".join('"' + c.replace('"', '""') + '"' for c in cols)
-            order = ", ".join(k for k in DEFAULT_ORDER if k in names)
-            query = f"SELECT {select} FROM cells" + (f" WHERE {where}" if where else "") + f" ORDER BY {order}"
+            order = ", ".join(k for k in (*DEFAULT_ORDER, "step") if k in names)
+            query = f"SELECT {select} FROM {view}" + (f" WHERE {where}" if where else "") + f" ORDER BY {order}"
             if limit is not None:
                 query += f" LIMIT {int(limit)}"
             try:

@@ -4,6 +4,7 @@ Layout of one sweep (``<results>/<sweep>/``)::
 
     manifest.json                        the grid (resolved specs) and its hash
     cells/domain=<d>/method=<m>/<cell_id>.parquet   one row per finished cell
+    curves/domain=<d>/method=<m>/<cell_id>.parquet  its learning curve (~50 rows), written just before it
     failed/<cell_id>.json                a cell that kept failing, with its error
     bases/<base_key>.pt                  shared base models (asp_dist.sweep.base_cache)
     tune/                                Ray Tune's experiment state and checkpoints
@@ -32,12 +33,13 @@ import pyarrow as pa
 
 from asp_dist.errors import SchemaError
 from asp_dist.fsutil import atomic_write, write_table_once
-from asp_dist.training.row import PARTITION_COLUMNS, row_table, schema
+from asp_dist.training.row import PARTITION_COLUMNS, curve_schema, curve_table, row_table, schema
 
 if TYPE_CHECKING:
     import pandas as pd
 
 CELLS_DIR = "cells"
+CURVES_DIR = "curves"
 FAILED_DIR = "failed"
 BASES_DIR = "bases"
 MANIFEST = "manifest.json"
@@ -55,6 +57,10 @@ def bases_dir(sweep_dir: str | Path) -> Path:
 
 def cell_path(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> Path:
     return cells_dir(sweep_dir) / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
+
+
+def curve_path(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> Path:
+    return Path(sweep_dir) / CURVES_DIR / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
 
 
 def is_sweep_dir(path: str | Path) -> bool:
@@ -85,6 +91,14 @@ def cell_files(sweep_dir: str | Path) -> list[Path]:
     return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
 
 
+def curve_files(sweep_dir: str | Path) -> list[Path]:
+    """The learning curves' Parquet files of a sweep, sorted (one per cell that recorded one)."""
+    root = Path(sweep_dir) / CURVES_DIR
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
+
+
 def done_cell_ids(sweep_dir: str | Path) -> set[str]:
     """Cells with a finished Parquet file (the file name is the cell id)."""
     return {p.stem for p in cell_files(sweep_dir)}
@@ -100,6 +114,13 @@ def write_row(sweep_dir: str | Path, row: dict[str, Any], sweep_id: str) -> bool
     row = dict(row, sweep_id=sweep_id)
     table = row_table(row)  # validate before touching the disk
     return write_table_once(table, cell_path(sweep_dir, row["domain"], row["method"], row["cell_id"]))
+
+
+def write_curve(sweep_dir: str | Path, row: dict[str, Any], curve: list[dict[str, float]]) -> bool:
+    """Write one cell's learning curve, before its row (the row is what marks the cell done).
+    Same rule as rows: written once, atomically, never overwritten."""
+    table = curve_table(row, curve)
+    return write_table_once(table, curve_path(sweep_dir, row["domain"], row["method"], row["cell_id"]))
 
 
 # ---- failures ----------------------------------------------------------------------------------
@@ -167,6 +188,19 @@ def read_table(sweep_dir: str | Path) -> pa.Table:
         return schema().empty_table()
     # Explicit schema: files written before a domain was added lack its metric columns -> null.
     return ds.dataset(files, schema=schema(), format="parquet").to_table()
+
+
+def read_curves(sweep_dir: str | Path) -> pd.DataFrame:
+    """Every learning-curve point of a sweep (one row per cell and step), by cell id and step."""
+    import pyarrow.dataset as ds
+
+    files = [str(p) for p in curve_files(sweep_dir)]
+    table = ds.dataset(files, schema=curve_schema(), format="parquet").to_table() if files else \
+        curve_schema().empty_table()
+    df = table.to_pandas()
+    for col in PARTITION_COLUMNS:
+        df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
+    return df.sort_values(["cell_id", "step"], kind="stable").reset_index(drop=True)
 
 
 def read_rows(sweep_dir: str | Path) -> pd.DataFrame:

@@ -88,8 +88,9 @@ def train_cell(config: dict[str, Any]) -> None:
 
     try:
         base, _ = get_base(spec, store.bases_dir(sweep_dir))
+        curve: list[dict[str, float]] = []
         row = run_cell(spec, base=base, checkpoint=save, restore=restore,
-                       checkpoint_every_s=config["checkpoint_every_s"])
+                       checkpoint_every_s=config["checkpoint_every_s"], curve=curve)
     except (SpecError, BaseRejected) as e:
         # Deterministic: a retry would fail the same way. Record and let the sweep go on.
         store.record_failure(sweep_dir, cell_id, spec.domain, spec.method, f"{type(e).__name__}: {e}")
@@ -97,6 +98,7 @@ def train_cell(config: dict[str, Any]) -> None:
         return
     row["ray_node_id"] = ray.get_runtime_context().get_node_id()
     row["ray_version"] = ray.__version__
+    store.write_curve(sweep_dir, row, curve)
     store.write_row(sweep_dir, row, config["sweep_id"])
     store.clear_failure(sweep_dir, cell_id)
     tune.report({"cell_done": 1, "eval_mixed": float(row["eval_mixed"])})

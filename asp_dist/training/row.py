@@ -88,6 +88,43 @@ def schema() -> pa.Schema:
     return pa.schema(fields)
 
 
+CURVE_KEYS = ("cell_id", "domain", "method", "paired", "trial")
+CURVE_DIAGNOSTICS = ("lambda_unpaired_now", *(f"loss_{k}" for k in LOSS_TERMS), "disc_acc_real", "disc_acc_fake",
+                     "d_fake")
+
+
+@lru_cache(maxsize=1)
+def curve_schema() -> pa.Schema:
+    """The pinned schema of a learning curve: one row per point of one cell (asp_dist.training.trainer)."""
+    fields = [pa.field(n, pa.dictionary(pa.int32(), pa.string()) if n in PARTITION_COLUMNS else
+                       (pa.int64() if n in ("paired", "trial") else pa.string())) for n in CURVE_KEYS]
+    fields.append(pa.field("step", pa.int64()))
+    fields += [pa.field(n, pa.float64()) for n in CURVE_DIAGNOSTICS]
+    fields += [pa.field(f"probe_{m}", pa.float64()) for m in metric_names()]
+    return pa.schema(fields)
+
+
+def curve_table(row: dict[str, Any], curve: list[dict[str, float]]) -> pa.Table:
+    """A cell's curve points as a table with the pinned curve schema (keys repeated from its row)."""
+    sch = curve_schema()
+    unknown = sorted({k for point in curve for k in point} - set(sch.names))
+    if unknown:
+        raise SchemaError(f"curve has column(s) not in the pinned schema: {', '.join(unknown)}; "
+                          f"add them to asp_dist/training/row.py")
+    arrays = []
+    for f in sch:
+        if f.name in CURVE_KEYS:
+            values = [row[f.name]] * len(curve)
+        else:
+            values = [point.get(f.name) for point in curve]
+            values = [int(v) for v in values] if f.name == "step" else values
+        if pa.types.is_dictionary(f.type):
+            arrays.append(pa.array(values, pa.string()).dictionary_encode())
+        else:
+            arrays.append(pa.array(values, f.type))
+    return pa.Table.from_arrays(arrays, schema=sch)
+
+
 def row_table(row: dict[str, Any]) -> pa.Table:
     """One row as a table with the pinned schema; missing columns are null, unknown ones an error."""
     sch = schema()
