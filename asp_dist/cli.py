@@ -298,6 +298,25 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_select(args: argparse.Namespace) -> int:
+    from asp_dist.analysis.calibration import report
+    from asp_dist.domains import DOMAINS
+    from asp_dist.results.query import load_rows
+
+    if args.domain not in DOMAINS:
+        raise SpecError(f"unknown domain {args.domain!r}; choose one of {', '.join(DOMAINS)}")
+    if args.resamples < 100:
+        raise SpecError(f"--resamples must be >= 100, got {args.resamples}")
+    rows = load_rows(args.sweeps, results=args.results)
+    if not (rows["domain"] == args.domain).any():
+        raise SpecError(f"no {args.domain} rows in {', '.join(args.sweeps)}")
+    try:
+        print(report(rows, args.domain, resamples=args.resamples))
+    except ValueError as e:
+        raise SpecError(str(e)) from None
+    return 0
+
+
 # ---- the parser ---------------------------------------------------------------------------------
 def _add_results(p: argparse.ArgumentParser) -> None:
     p.add_argument("--results", default=store.DEFAULT_RESULTS, metavar="DIR",
@@ -396,6 +415,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--curves", action="store_true",
                    help="query the sweeps' learning curves (view `curves`: one row per cell and step) instead of `cells`")
     p.set_defaults(func=cmd_query)
+
+    p = sub.add_parser("select", help="the reproduction study's selection and power rules on a calibration sweep "
+                                      "(docs/reproduction.md)")
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP")
+    p.add_argument("--domain", required=True, help="particles | vae | levers | signaling")
+    p.add_argument("--resamples", type=int, default=5000, help="bootstrap resamples of the power estimate")
+    _add_results(p)
+    p.set_defaults(func=cmd_select)
     return ap
 
 
