@@ -4,7 +4,7 @@ and (optionally) whole cells at paper settings.
     python bench/bench_particles.py                      # base + per-update times (about a minute)
     python bench/bench_particles.py --cells pc,osp,asp   # also one full cell per method (minutes)
 
-Per-update time is given for the fused trainer that cells run (particles_fused.py) and for the
+Per-update time is given for the fused trainer that cells run (asp_dist/training/fast/particles.py) and for the
 autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
 paper's batch (8 envs), the full paired set (6) and the ASP discriminator where it applies.
 Peak memory is the process's maximum resident set size (ru_maxrss) after each phase.

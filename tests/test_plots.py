@@ -104,3 +104,76 @@ def test_several_inputs_need_an_output_directory(tmp_path):
     text = (tmp_path / "m" / "report.md").read_text()
     assert "**vae**" in text and "**signaling**" in text
     assert main(["stats", str(a), "--paired-range", "vae=x"]) == 2
+
+
+CURVE_FIGURES = {f"signaling_curve_{s}" for s in ("d_fake", "loss_disc", "disc_acc_fake", "probe_mixed",
+                                                 "probe_self_play_new")}
+
+
+def _synthetic_curve(row: dict, rng) -> list[dict]:
+    """50 points like the trainer's: diagnostics at every point, probes at every fifth."""
+    out = []
+    for k in range(50):
+        step = 2 * (k + 1)
+        point = {"step": step, "lambda_unpaired_now": row["lambda_unpaired"], "loss_disc": 1.4 - step / 200,
+                 "d_fake": 0.5 - step / 400 + 0.02 * rng.normal(), "disc_acc_fake": 0.5 + step / 300,
+                 "loss_total": 1.0 / step}
+        if k % 5 == 4:
+            point.update(probe_mixed=0.5 + step / 250 + 0.05 * rng.normal(), probe_self_play_new=0.9)
+        out.append(point)
+    return out
+
+
+def test_learning_curve_figures_from_a_sweep_but_not_from_merged_parquet(tmp_path):
+    from asp_dist.results import store
+
+    rng = np.random.default_rng(1)
+    rows = make_rows(paired=(0, 2, 4), trials=range(3))
+    sweep = write_sweep(tmp_path / "sw", rows)
+    for r in rows:
+        assert store.write_curve(sweep, r, _synthetic_curve(r, rng))
+    report = run_stats_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
+    for name in CURVE_FIGURES:
+        _nonempty([sweep / "figures" / f"{name}.png", sweep / "figures" / f"{name}.svg"])
+    text = report.read_text()
+    assert "![signaling: learning curve of d_fake](figures/signaling_curve_d_fake.png)" in text
+    svg = (sweep / "figures" / "signaling_curve_probe_mixed.svg").read_text()
+    assert "higher is better" in svg and "training step" in svg
+
+    # The same rows merged into one .parquet file: no curves to read, so no curve figure and no error.
+    merged = tmp_path / "merged.parquet"
+    pd.DataFrame(rows).to_parquet(merged)
+    report = run_stats_job([str(merged)], out=str(tmp_path / "m"), cfg=StatsConfig(n_boot=200), log=lambda m: None)
+    drawn = {p.stem for p in (tmp_path / "m" / "figures").glob("*.png")}
+    assert "signaling_metric_vs_paired" in drawn and not any("_curve_" in n for n in drawn)
+    assert "learning curve" not in report.read_text()
+
+
+def test_curve_figures_are_capped_per_domain(tmp_path):
+    from asp_dist.analysis.plots import MAX_CURVE_FIGURES_PER_DOMAIN, plot_curves
+
+    rng = np.random.default_rng(2)
+    rows = make_rows(paired=(0, 4), trials=range(2), knobs={"signaling_skew": [0.0, 1.0, 2.0]})
+    curves = pd.DataFrame([{**{k: r[k] for k in ("cell_id", "domain", "method", "paired", "trial")}, **p}
+                           for r in rows for p in _synthetic_curve(r, rng)])
+    res = compute(pd.DataFrame(rows), StatsConfig(n_boot=200))
+    figures, notes = plot_curves(res, curves, "signaling", tmp_path)
+    assert len(figures) == MAX_CURVE_FIGURES_PER_DOMAIN < 3 * len(CURVE_FIGURES)
+    assert figures[0].name == "signaling_curve_d_fake_signaling_skew_0"
+    assert len(notes) == 1 and "not drawn" in notes[0]
+
+
+def test_curve_figures_from_real_cells(tmp_path, tiny):
+    from asp_dist.results import store
+    from asp_dist.training.cell import run_cell
+
+    sweep = tmp_path / "real"
+    for method in ("pc", "asp"):
+        for trial in (0, 1):
+            curve: list[dict] = []
+            row = run_cell(tiny("signaling", method=method, paired=2, trial=trial, train_steps=100), curve=curve)
+            assert store.write_curve(sweep, row, curve)
+            assert store.write_row(sweep, row, "real")
+    run_stats_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
+    drawn = {p.stem for p in (sweep / "figures").glob("*.png")}
+    assert {"signaling_curve_d_fake", "signaling_curve_probe_mixed"} <= drawn, drawn

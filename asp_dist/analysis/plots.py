@@ -7,7 +7,11 @@
   numeric knob — for the signaling game, against the token-distribution skew;
 - scatters from rows' ``figure_data``: VAE 2-D latent codes coloured by digit
   (``{"kind": "latent2d", "base", "new", "labels"}``) and the PCA of lever communication
-  vectors coloured by agent ID (``{"kind": "comm", "base", "new", "ids"}``).
+  vectors coloured by agent ID (``{"kind": "comm", "base", "new", "ids"}``);
+- learning curves (a sweep directory's curves/ dataset, asp_dist.results.store.read_curves): a
+  few key series (D(fake), discriminator loss and accuracy on fake, the probe metrics) against
+  the training step, one panel per paired count, median line and quartile band over trials per
+  treatment; one figure per (series, condition), at most MAX_CURVE_FIGURES_PER_DOMAIN per domain.
 
 Every y axis names the metric with its unit and says which direction is better.
 """
@@ -25,15 +29,26 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+import pyarrow as pa  # noqa: E402
 
 from asp_dist.analysis.job import StatsResult  # noqa: E402
 from asp_dist.analysis.layout import condition_key, is_asp, treatment_order  # noqa: E402
 from asp_dist.analysis.paper import knob_label, metric_label  # noqa: E402
 from asp_dist.analysis.rank_tests import bootstrap_median_ci, group_seed  # noqa: E402
+from asp_dist.errors import SchemaError  # noqa: E402
+from asp_dist.results import store  # noqa: E402
 
 METHOD_COLORS = {"pc": "#7f7f7f", "osp": "#1f77b4", "asp": "#d62728"}
 MAX_PANELS = 8
 MAX_FIGURES_PER_KIND = 12
+# Learning-curve series drawn, in this order, when the curves have data for them.
+CURVE_SERIES = ("d_fake", "loss_disc", "disc_acc_fake", "probe_mixed", "probe_self_play_new")
+MAX_CURVE_FIGURES_PER_DOMAIN = 10
+CURVE_LABELS = {
+    "d_fake": "D(fake): discriminator's mean output on\nthe new agents' outputs (1 = judged base-like)",
+    "loss_disc": "discriminator loss (binary cross-entropy, nats)",
+    "disc_acc_fake": "discriminator accuracy on the\nnew agents' outputs (fraction)",
+}
 
 
 @dataclass
@@ -367,8 +382,120 @@ def plot_reconstructions(payloads: list[tuple[dict, dict]], out_dir: Path) -> tu
     return figures, notes
 
 
-def plot_all(result: StatsResult, out_dir: str | Path) -> tuple[list[Figure], list[str]]:
-    """Every figure the rows support, written under `out_dir` (…/figures). Returns figures and notes."""
+# ---- learning curves --------------------------------------------------------------------------
+
+def load_curves(result: StatsResult) -> tuple[pd.DataFrame | None, list[str]]:
+    """The learning curves of the input sweep directories that have a curves/ folder, or None.
+
+    Merged .parquet inputs and plain directories have no curves; that is not an error."""
+    dirs = [Path(d) for d in (result.inputs.sweep_dirs if result.inputs is not None else [])
+            if (Path(d) / store.CURVES_DIR).is_dir()]
+    frames, notes = [], []
+    for d in dirs:
+        try:
+            frames.append(store.read_curves(d))
+        except (SchemaError, OSError, ValueError, pa.ArrowException) as err:
+            notes.append(f"learning curves of {d} not read: {err}")
+    frames = [f for f in frames if not f.empty]
+    return (pd.concat(frames, ignore_index=True) if frames else None), notes
+
+
+def _metric_directions(rows: pd.DataFrame) -> dict[str, bool]:
+    """metric name -> higher is better, from the rows' metric_directions JSON."""
+    found: dict[str, bool] = {}
+    if "metric_directions" not in rows:
+        return found
+    for text in rows["metric_directions"].dropna().unique():
+        try:
+            found.update({k: v == "higher" for k, v in json.loads(text).items()})
+        except (TypeError, ValueError, AttributeError):
+            continue
+    return found
+
+
+def curve_y_label(domain: str, series: str, directions: dict[str, bool]) -> str:
+    if series.startswith("probe_"):
+        name = series.removeprefix("probe_")
+        what = f"probe: {metric_label(domain, 'eval_' + name)}"
+        if name in directions:
+            return f"{what}\n({'↑ higher' if directions[name] else '↓ lower'} is better)"
+        return what
+    return CURVE_LABELS.get(series, series)
+
+
+def _spread(values: list, most: int) -> list:
+    """At most `most` of the sorted `values`, spread over the range (first and last kept)."""
+    if len(values) <= most:
+        return values
+    return [values[i] for i in np.linspace(0, len(values) - 1, most).round().astype(int)]
+
+
+def plot_curves(result: StatsResult, curves: pd.DataFrame, domain: str, out_dir: Path) -> tuple[list[Figure], list[str]]:
+    """One figure per (series, condition) of a domain: x = training step, one panel per paired count,
+    per treatment the median over trials (line) and the first–third quartile band."""
+    rows = result.rows[result.rows["domain"] == domain]
+    labels = rows[["cell_id", "treatment", "condition"]].drop_duplicates("cell_id")
+    c = curves[curves["domain"] == domain].drop(columns=["treatment", "condition"], errors="ignore")
+    c = c.drop_duplicates(["cell_id", "step"]).merge(labels, on="cell_id", how="inner")
+    if c.empty:
+        return [], []
+    directions = _metric_directions(rows)
+    wanted = [(cond, series) for cond in sorted(c["condition"].unique(), key=condition_key)
+              for series in CURVE_SERIES if series in c and c.loc[c["condition"] == cond, series].notna().any()]
+    notes = []
+    if len(wanted) > MAX_CURVE_FIGURES_PER_DOMAIN:
+        left = wanted[MAX_CURVE_FIGURES_PER_DOMAIN:]
+        notes.append(f"{domain}: {len(left)} learning-curve figure(s) beyond the first {MAX_CURVE_FIGURES_PER_DOMAIN} "
+                     f"were not drawn (e.g. {left[0][1]} at {left[0][0]})")
+        wanted = wanted[:MAX_CURVE_FIGURES_PER_DOMAIN]
+    order = treatment_order(rows["treatment"])  # one style per treatment across panels and figures
+    figures = []
+    for cond, series in wanted:
+        cs = c[(c["condition"] == cond) & c[series].notna()]
+        counts = _spread(sorted(cs["paired"].unique()), MAX_PANELS)
+        fig, axes = _panels(len(counts))
+        sparse = cs.groupby("cell_id").size().median() <= 15  # probes: ~10 points per cell, so mark them
+        for ax, paired in zip(axes, counts):
+            cp = cs[cs["paired"] == paired]
+            for i, treat in enumerate(order):
+                t = cp[cp["treatment"] == treat]
+                if t.empty:
+                    continue
+                q = t.groupby("step")[series].quantile([0.25, 0.5, 0.75]).unstack().sort_index()
+                style = _style(treat, i)
+                if not sparse:
+                    style["marker"] = None
+                ax.plot(q.index, q[0.5], **style)
+                ax.fill_between(q.index, q[0.25], q[0.75], color=style["color"], alpha=0.15, linewidth=0)
+            ax.set_xlabel("training step (updates)")
+            ax.set_title(f"{paired} paired", fontsize=10)
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel(curve_y_label(domain, series, directions))
+        handles: dict[str, Any] = {}
+        for ax in axes:  # every treatment drawn in any panel, even one absent from the first
+            for h, lab in zip(*ax.get_legend_handles_labels()):
+                handles.setdefault(lab, h)
+        axes[0].legend(list(handles.values()), list(handles), fontsize=8)
+        where = f", {cond}" if cond != "all" else ""
+        n_trials = int(cs.drop_duplicates("cell_id")["trial"].nunique())
+        fig.suptitle(f"{domain}{where}: {series} during training (median and quartiles over {n_trials} trials)",
+                     fontsize=11)
+        stem = _safe(f"{domain}_curve_{series}" + (f"_{cond}" if cond != "all" else ""))
+        figures.append(Figure(stem, f"{domain}: learning curve of {series}" + (f" ({cond})" if cond != "all" else ""),
+                              "Median over trials (line) and first–third quartile band per method against the "
+                              "training step, one panel per paired count."
+                              + (" Probe values are a cheap evaluation on a tenth of the evaluation episodes, "
+                                 "recorded at about ten points per cell." if series.startswith("probe_") else ""),
+                              _save(fig, out_dir, stem)))
+    return figures, notes
+
+
+def plot_all(result: StatsResult, out_dir: str | Path,
+             curves: pd.DataFrame | None = None) -> tuple[list[Figure], list[str]]:
+    """Every figure the rows support, written under `out_dir` (…/figures). Returns figures and notes.
+
+    Learning-curve figures come from `curves` when given, else from the input sweep directories'
+    curves/ folders (none for merged .parquet inputs)."""
     out = Path(out_dir)
     figures: list[Figure] = []
     for domain in sorted(result.layouts):
@@ -381,4 +508,13 @@ def plot_all(result: StatsResult, out_dir: str | Path) -> tuple[list[Figure], li
             if effect:
                 figures.append(effect)
     scatter, notes = plot_figure_data(result, out)
-    return figures + scatter, notes
+    curve_notes: list[str] = []
+    if curves is None:
+        curves, curve_notes = load_curves(result)
+    curve_figures = []
+    if curves is not None and not curves.empty:
+        for domain in sorted(result.layouts):
+            figs, more = plot_curves(result, curves, domain, out)
+            curve_figures.extend(figs)
+            curve_notes.extend(more)
+    return figures + scatter + curve_figures, notes + curve_notes
