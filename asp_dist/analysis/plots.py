@@ -475,7 +475,9 @@ def plot_curves(result: StatsResult, curves: pd.DataFrame, domain: str, out_dir:
         for ax in axes:  # every treatment drawn in any panel, even one absent from the first
             for h, lab in zip(*ax.get_legend_handles_labels()):
                 handles.setdefault(lab, h)
-        axes[0].legend(list(handles.values()), list(handles), fontsize=8)
+        # Below the panels: treatment labels of a calibration grid are long and would cover the data.
+        fig.legend(list(handles.values()), list(handles), fontsize=8, loc="upper center",
+                   bbox_to_anchor=(0.5, 0.0), ncol=min(2, len(handles)), frameon=False)
         where = f", {cond}" if cond != "all" else ""
         n_trials = int(cs.drop_duplicates("cell_id")["trial"].nunique())
         fig.suptitle(f"{domain}{where}: {series} during training (median and quartiles over {n_trials} trials)",
