@@ -8,6 +8,8 @@ compares. Record only on purpose: a changed row means changed behaviour.
 
 from __future__ import annotations
 
+# A frozen copy of tests/budgets.py as it was when the rows were recorded: the shared budgets may
+# change for other tests, these cells must not.
 TINY = {
     "signaling": dict(train_steps=60, batch_size=16, unpaired_size=128),
     "particles": dict(train_steps=40, base_train_steps=30, particles_base_envs=32, eval_episodes=64,
