@@ -69,10 +69,14 @@ class Trainer:
         factor = lambda_factor(self.spec, self.step)
         return w if factor == 1.0 else LossWeights(w.self_play, w.paired, w.unpaired * factor)
 
+    def in_curve_window(self) -> bool:
+        """Whether this update is among the last curve_window before a curve point."""
+        to_point = (-self.step - 1) % self.curve_every  # updates after this one until the next curve point
+        return to_point < self.curve_window
+
     def recording(self) -> bool:
         """Whether this update's loss values are recorded (final window or a curve window)."""
-        to_point = (-self.step - 1) % self.curve_every  # updates after this one until the next curve point
-        return self.step >= self.window_start or to_point < self.curve_window
+        return self.step >= self.window_start or self.in_curve_window()
 
     def train_step(self) -> None:
         spec, w = self.spec, self.weights_now()
@@ -115,7 +119,7 @@ class Trainer:
                 if name in values:
                     self.loss_sums[name] += values[name]
             self.loss_sums["_count"] += 1
-        if (-self.step - 1) % self.curve_every < self.curve_window:
+        if self.in_curve_window():
             for name, value in values.items():
                 self.curve_sums[name] += value
             self.curve_sums["_count"] += 1
