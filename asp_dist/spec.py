@@ -11,6 +11,8 @@ one flat, pinned schema serves every domain: a particle row simply has ``vae_*``
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass, field, fields
 from typing import Any, get_type_hints
 
@@ -145,20 +147,47 @@ class CellSpec:
         return spec
 
     # ---- validation --------------------------------------------------------------------------
+    def validate_types(self) -> None:
+        """Every field holds a value of its type: text, true/false, an integer (never a bool, within
+        int64) or a finite number (never a bool, NaN or ±inf); None only where the field is optional."""
+        for name in FIELD_NAMES:
+            value = getattr(self, name)
+            if value is None:
+                if name not in _OPTIONAL:
+                    raise SpecError(f"{name} must have a value (it is not optional), got None")
+                continue
+            t = field_type(name)
+            if t is str:
+                ok = isinstance(value, str)
+            elif t is bool:
+                ok = isinstance(value, bool)
+            elif t is int:
+                ok = isinstance(value, int) and not isinstance(value, bool) and -INT64_MAX - 1 <= value <= INT64_MAX
+            else:
+                ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
+                      and math.isfinite(float(value)))
+            if not ok:
+                raise SpecError(f"{name} must be {_TYPE_WORDS[t]}, got {_short_repr(value)}")
+
     def validate_identity(self) -> None:
+        for name in ("domain", "method"):
+            if not isinstance(getattr(self, name), str):
+                raise SpecError(f"{name} must be text, got {_short_repr(getattr(self, name))}")
         if self.domain not in DOMAINS:
-            raise SpecError(f"unknown domain {self.domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
+            raise SpecError(f"unknown domain {_short_repr(self.domain)}; choose one of {', '.join(sorted(DOMAINS))}")
         if self.method not in METHODS:
-            raise SpecError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+            raise SpecError(f"unknown method {_short_repr(self.method)}; choose one of {', '.join(METHODS)}")
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
-                raise SpecError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+                raise SpecError(f"{name} must be one of {', '.join(allowed)}, got {_short_repr(getattr(self, name))}")
         for name in ("paired", "trial", "root_seed"):
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                raise SpecError(f"{name} must be an integer >= 0, got {value!r}")
+            if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= INT64_MAX:
+                raise SpecError(f"{name} must be an integer >= 0 (in the int64 range), got {_short_repr(value)}")
+        self.validate_types()
 
     def validate_resolved(self) -> None:
+        self.validate_types()  # again: domain defaults and the replacements of resolved() are values too
         for f in fields(self):
             value = getattr(self, f.name)
             if value is None:
@@ -242,6 +271,21 @@ OUTPUT_ONLY_FIELDS = frozenset({"record_figure_data"})
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
 FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}
 _HINTS = get_type_hints(CellSpec)
+_OPTIONAL = frozenset(name for name in FIELD_NAMES if "None" in str(_HINTS[name]))
+INT64_MAX = 2**63 - 1  # integer knobs are stored as int64 in the result row
+_TYPE_WORDS = {str: "text", bool: "true or false", int: "an integer in the int64 range (not a bool)",
+               float: "a finite number (not NaN, inf or a bool)"}
+
+
+def _is_bool(value: Any) -> bool:
+    """True for Python and NumPy booleans (numpy.bool_ is no subclass of bool)."""
+    return isinstance(value, bool) or type(value).__name__ in ("bool_", "bool")
+
+
+def _short_repr(value: Any, width: int = 60) -> str:
+    """A value for a one-line error message."""
+    text = repr(value)
+    return text if len(text) <= width else text[: width - 1] + "…"
 
 
 def field_type(name: str) -> type:
@@ -263,22 +307,32 @@ def coerce_field(name: str, value: Any) -> Any:
     try:
         if t is bool:
             if isinstance(value, str):
-                if value.lower() in ("1", "true", "yes", "on"):
+                if value.strip().lower() in ("1", "true", "yes", "on"):
                     return True
-                if value.lower() in ("0", "false", "no", "off"):
+                if value.strip().lower() in ("0", "false", "no", "off"):
                     return False
                 raise ValueError
-            return bool(value)
+            if _is_bool(value) or (isinstance(value, numbers.Integral) and value in (0, 1)):
+                return bool(value)
+            raise ValueError  # 2, 0.5, a list: not a yes/no answer
+        if _is_bool(value) and t in (int, float):
+            raise ValueError  # `paired = true` in a space file is a mistake, not 1
         if t is int:
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError
-            if isinstance(value, str) and value.lower() == "none":
+            if isinstance(value, str) and value.strip().lower() == "none":
                 return None
+            if not isinstance(value, (numbers.Integral, float, str)):
+                raise ValueError
             return int(value)
         if t is float:
-            if isinstance(value, str) and value.lower() == "none":
+            if isinstance(value, str) and value.strip().lower() == "none":
                 return None
+            if not isinstance(value, (numbers.Real, str)):
+                raise ValueError
             return float(value)
-        return str(value)
-    except (TypeError, ValueError):
-        raise SpecError(f"{name} must be of type {t.__name__}, got {value!r}") from None
+        if not isinstance(value, str):
+            raise ValueError
+        return value
+    except (TypeError, ValueError, OverflowError):
+        raise SpecError(f"{name} must be of type {t.__name__}, got {_short_repr(value)}") from None

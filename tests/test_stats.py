@@ -372,26 +372,28 @@ def test_mismatched_column_types_are_refused(tmp_path):
     rows = make_rows(trials=range(2))
     sweep = write_sweep(tmp_path / "bad", rows)
     bad = dict(rows[0], eval_mixed="0.5", cell_id="odd")
-    pq.write_table(pa.Table.from_pylist([bad]), sweep / "cells" / "odd.parquet")
+    odd = tmp_path / "odd.parquet"  # a loose file given beside the sweep (inside it, it would not count)
+    pq.write_table(pa.Table.from_pylist([bad]), odd)
     with pytest.raises(SchemaError, match="column 'eval_mixed' is float in .* but string in"):
-        run_stats([sweep], cfg())
+        run_stats([sweep, odd], cfg())
 
 
 def test_files_without_key_columns_are_refused(tmp_path):
     sweep = write_sweep(tmp_path / "nokeys", make_rows(trials=range(2)))
-    pq.write_table(pa.table({"x": [1]}), sweep / "cells" / "stray.parquet")
+    pq.write_table(pa.table({"x": [1]}), tmp_path / "stray.parquet")
     with pytest.raises(SchemaError, match="lacks the key column"):
-        open_inputs([sweep])
+        open_inputs([sweep, tmp_path / "stray.parquet"])
 
 
 def test_int_and_float_columns_widen_and_temp_files_are_ignored(tmp_path):
     rows = make_rows(trials=range(2))
     sweep = write_sweep(tmp_path / "widen", rows)
-    pq.write_table(pa.Table.from_pylist([dict(rows[0], train_steps=1.5, cell_id="w")]), sweep / "cells" / "w.parquet")
+    widened = tmp_path / "w.parquet"
+    pq.write_table(pa.Table.from_pylist([dict(rows[0], train_steps=1.5, cell_id="w")]), widened)
     (sweep / "cells" / ".half-written.parquet").write_bytes(b"garbage")
     (sweep / "cells" / "_tmp").mkdir()
     (sweep / "cells" / "_tmp" / "x.parquet").write_bytes(b"garbage")
-    df = load_rows([sweep])
+    df = load_rows([sweep, widened])
     assert len(df) == len(rows) + 1 and df["train_steps"].dtype == float
 
 

@@ -153,8 +153,12 @@ def _read_package() -> dict[str, np.ndarray]:
 def _read_user_path(path: Path) -> dict[str, np.ndarray]:
     if path.is_file() and path.suffix == ".npz":
         return _read_npz(path)
+    if not path.exists():
+        raise MNISTError(f"MNIST not found: {path} does not exist (is {ENV_VAR} set to the right path?); "
+                         f"{HOW_TO_PROVIDE}")
     if not path.is_dir():
-        raise MNISTError(f"MNIST not found: {path} is neither a directory nor an .npz file; {HOW_TO_PROVIDE}")
+        raise MNISTError(f"MNIST not found: {path} is a file, but neither a directory of IDX files nor an "
+                         f".npz archive; {HOW_TO_PROVIDE}")
     if (path / "mnist.npz").is_file():
         return _read_npz(path / "mnist.npz")
     arrays = {}

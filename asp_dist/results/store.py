@@ -18,6 +18,11 @@ the hive-style directories and the same-named columns agree: pandas.read_parquet
 pyarrow.dataset.dataset(dir) and DuckDB read_parquet('dir/**/*.parquet') all read the
 directory as-is (plain string columns would make pandas fail with "Unable to merge").
 
+THE reader (cell_files, read_table, read_rows) verifies every cell file against this layout before it
+counts: one row, its cell_id the file's name, its domain and method its directories', no cell twice.
+A stray, planted or truncated file is named in a warning and left out (or, with ``strict=True``,
+refused with SchemaError).
+
 Everything that knows this layout is here; the sweep ledger, ``asp-dist query`` and the stats
 job ask this module. No Ray import: results are read without starting Ray.
 """
@@ -25,6 +30,7 @@ job ask this module. No Ray import: results are read without starting Ray.
 from __future__ import annotations
 
 import json
+import sys
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -83,12 +89,83 @@ def visible(path: Path, root: Path) -> bool:
     return not any(p.startswith((".", "_")) for p in path.relative_to(root).parts)
 
 
-def cell_files(sweep_dir: str | Path) -> list[Path]:
-    """The finished cells' Parquet files of a sweep, sorted; temp files of unfinished writes are left out."""
+def cell_files(sweep_dir: str | Path, strict: bool = False) -> list[Path]:
+    """The finished cells' Parquet files of a sweep, sorted; temp files of unfinished writes are left out.
+
+    Each file is verified to be what the store writes (cell_file_problem): one row, whose cell_id is the
+    file's name and whose domain and method are its directories', and no cell twice. A file that is not
+    (stray, planted, truncated, copied) is never counted: it is named in a warning on stderr, or, with
+    `strict`, refused with a SchemaError."""
     root = cells_dir(sweep_dir)
     if not root.is_dir():
         return []
-    return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
+    good: list[Path] = []
+    seen: dict[str, Path] = {}
+    for path in sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file()):
+        problem = cell_file_problem(path, root)
+        if problem is None and path.stem in seen:
+            problem = f"repeats cell {path.stem}, already in {seen[path.stem]}"
+        if problem is not None:
+            _reject(path, problem, strict)
+            continue
+        seen[path.stem] = path
+        good.append(path)
+    return good
+
+
+_CHECKED: dict[str, tuple[tuple[int, int, int], str | None]] = {}  # path -> (inode, size, mtime), verdict
+_WARNED: set[tuple[str, str]] = set()
+
+
+def cell_file_problem(path: Path, root: Path) -> str | None:
+    """None for a cell file as write_row leaves it under `root` (a sweep's cells/), else what is wrong.
+    Finished files never change, so a verdict is kept while the file's inode, size and mtime stay the same."""
+    import pyarrow.parquet as pq
+
+    try:
+        st = path.stat()
+    except OSError as err:
+        return f"cannot be read ({err.strerror or err})"
+    key = (st.st_ino, st.st_size, st.st_mtime_ns)
+    cached = _CHECKED.get(str(path))
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    parts = path.relative_to(root).parts
+    if len(parts) != 3 or not parts[0].startswith("domain=") or not parts[1].startswith("method="):
+        problem: str | None = f"is not in a {CELLS_DIR}/domain=<domain>/method=<method>/ directory"
+    else:
+        domain, method = parts[0][len("domain="):], parts[1][len("method="):]
+        try:
+            meta = pq.ParquetFile(path)
+            names = meta.schema_arrow.names
+            missing = [c for c in ("cell_id", *PARTITION_COLUMNS) if c not in names]
+            rows = meta.metadata.num_rows
+            if missing:
+                problem = f"lacks the column(s) {', '.join(missing)}; it is not a cell's row"
+            elif rows != 1:
+                problem = f"holds {rows} rows; a cell's file holds exactly one"
+            else:
+                row = meta.read(columns=["cell_id", *PARTITION_COLUMNS]).to_pylist()[0]
+                if row["cell_id"] != path.stem:
+                    problem = f"holds cell {row['cell_id']!r}, not {path.stem!r} as its name says"
+                elif (row["domain"], row["method"]) != (domain, method):
+                    problem = (f"holds a {row['domain']}/{row['method']} row in the directory of "
+                               f"{domain}/{method}")
+                else:
+                    problem = None
+        except (pa.ArrowException, OSError) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            problem = f"cannot be read as Parquet ({first})"
+    _CHECKED[str(path)] = (key, problem)
+    return problem
+
+
+def _reject(path: Path, problem: str, strict: bool) -> None:
+    if strict:
+        raise SchemaError(f"{path} {problem}")
+    if (str(path), problem) not in _WARNED:  # once per file and process: a sweep's driver asks often
+        _WARNED.add((str(path), problem))
+        print(f"asp-dist: warning: {path} is not counted: it {problem}", file=sys.stderr)
 
 
 def curve_files(sweep_dir: str | Path) -> list[Path]:
@@ -99,9 +176,9 @@ def curve_files(sweep_dir: str | Path) -> list[Path]:
     return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
 
 
-def done_cell_ids(sweep_dir: str | Path) -> set[str]:
-    """Cells with a finished Parquet file (the file name is the cell id)."""
-    return {p.stem for p in cell_files(sweep_dir)}
+def done_cell_ids(sweep_dir: str | Path, strict: bool = False) -> set[str]:
+    """Cells with a finished, verified Parquet file (the file name is the cell id)."""
+    return {p.stem for p in cell_files(sweep_dir, strict)}
 
 
 def is_done(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> bool:
@@ -179,11 +256,12 @@ def read_manifest(sweep_dir: str | Path) -> dict[str, Any] | None:
 
 
 # ---- reading -----------------------------------------------------------------------------------
-def read_table(sweep_dir: str | Path) -> pa.Table:
-    """All finished rows of a sweep as one Arrow table with the pinned schema."""
+def read_table(sweep_dir: str | Path, strict: bool = False) -> pa.Table:
+    """All finished rows of a sweep as one Arrow table with the pinned schema (verified files only, see
+    cell_files; `strict`: SchemaError on any file that is not a cell's)."""
     import pyarrow.dataset as ds
 
-    files = [str(p) for p in cell_files(sweep_dir)]
+    files = [str(p) for p in cell_files(sweep_dir, strict)]
     if not files:
         return schema().empty_table()
     # Explicit schema: files written before a domain was added lack its metric columns -> null.
@@ -203,9 +281,9 @@ def read_curves(sweep_dir: str | Path) -> pd.DataFrame:
     return df.sort_values(["cell_id", "step"], kind="stable").reset_index(drop=True)
 
 
-def read_rows(sweep_dir: str | Path) -> pd.DataFrame:
+def read_rows(sweep_dir: str | Path, strict: bool = False) -> pd.DataFrame:
     """All finished rows of a sweep as a DataFrame (domain and method as plain strings), by cell id."""
-    df = read_table(sweep_dir).to_pandas()
+    df = read_table(sweep_dir, strict).to_pandas()
     for col in PARTITION_COLUMNS:
         df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
     return df.sort_values("cell_id", kind="stable").reset_index(drop=True)

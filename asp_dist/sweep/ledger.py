@@ -9,6 +9,7 @@ this module decides what they must say for a sweep to start, continue or be repo
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import re
 import socket
@@ -65,14 +66,37 @@ def check_sweep_dir(sweep_dir: Path) -> None:
                          f"choose another with --results") from None
 
 
+def _nearest_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_sweep_dir_readonly(sweep_dir: Path) -> None:
+    """check_sweep_dir without touching the disk: what a run would refuse, refused before anything is written."""
+    if sweep_dir.exists() and not sweep_dir.is_dir():
+        raise SweepError(f"{sweep_dir} exists and is not a directory; choose another --name or --results")
+    if sweep_dir.is_dir() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
+    existing = _nearest_existing(sweep_dir)
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        why = "not a directory" if not existing.is_dir() else "read-only"
+        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({existing} is {why}); "
+                         f"choose another with --results")
+
+
 def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float) -> None:
     """The numbers of a run, refused before Ray is imported."""
+    for flag, value in (("--workers", workers), ("--max-failures", max_failures)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SweepError(f"{flag} must be an integer, got {value!r}")
     if workers < 1:
         raise SweepError(f"--workers must be >= 1, got {workers}")
     if max_failures < 0:
         raise SweepError(f"--max-failures must be >= 0, got {max_failures}")
-    if not checkpoint_every_s > 0:
-        raise SweepError(f"--checkpoint-every must be > 0 seconds, got {checkpoint_every_s}")
+    if not (isinstance(checkpoint_every_s, (int, float)) and math.isfinite(checkpoint_every_s)
+            and checkpoint_every_s > 0):
+        raise SweepError(f"--checkpoint-every must be > 0 seconds and finite, got {checkpoint_every_s}")
 
 
 # ---- lock ----------------------------------------------------------------------------------------
@@ -135,14 +159,61 @@ def check_manifest(sweep_dir: Path, name: str, specs: list[CellSpec], space: str
     return existing
 
 
+def check_manifest_shape(manifest: dict[str, Any], where: Path) -> None:
+    """A manifest as new_manifest writes it: name, space and grid_hash as text, the cell ids and a resolved
+    spec dict (with its domain and method) per cell. Anything else is refused in one line, never a KeyError."""
+    path = where / store.MANIFEST
+    for key in ("name", "space", "grid_hash"):
+        if not isinstance(manifest.get(key), str):
+            raise SweepError(f"{path} is not a sweep manifest: {key!r} is missing or not text")
+    cells, specs = manifest.get("cells"), manifest.get("specs")
+    if not isinstance(specs, list) or len(specs) != len(cells):
+        raise SweepError(f"{path} is not a sweep manifest: it needs one spec under 'specs' per cell id in 'cells'")
+    for spec in specs:
+        if not (isinstance(spec, dict) and isinstance(spec.get("domain"), str) and isinstance(spec.get("method"), str)):
+            raise SweepError(f"{path} is not a sweep manifest: every spec needs a domain and a method")
+
+
 def read_sweep(results: str | Path, name: str) -> tuple[Path, dict[str, Any]]:
-    """The directory and manifest of an existing sweep (for resume and status)."""
+    """The directory and manifest of an existing sweep (for resume and status), its shape checked."""
     sweep_dir = sweep_dir_for(results, name)
+    if sweep_dir.exists() and not sweep_dir.is_dir():
+        raise SweepError(f"{sweep_dir} is not a sweep directory")
     manifest = store.read_manifest(sweep_dir)
     if manifest is None:
         raise SweepError(f"no sweep {name!r} under {sweep_dir.parent}; start it with "
                          f"`asp-dist sweep SPACE --name {name}`")
+    check_manifest_shape(manifest, sweep_dir)
     return sweep_dir, manifest
+
+
+def check_not_running(sweep_dir: Path) -> None:
+    holder = lock_holder(sweep_dir)
+    if holder is not None:
+        raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
+                         f"or use another --name")
+
+
+def check_can_start(results: str | Path, name: str, specs: list[CellSpec], space: str) -> Path:
+    """Everything `sweep` refuses about where it would run, checked without writing: the name, the
+    results dir, a directory that is not a sweep, a sweep started with another grid, a running sweep.
+    The run checks them again under its lock (tune._run); this is the early, read-only answer."""
+    sweep_dir = sweep_dir_for(results, name)
+    check_sweep_dir_readonly(sweep_dir)
+    if store.read_manifest(sweep_dir) is not None:
+        read_sweep(results, name)  # its manifest's shape
+        check_manifest(sweep_dir, name, specs, space)
+        check_not_running(sweep_dir)
+    return sweep_dir
+
+
+def check_can_resume(results: str | Path, name: str) -> list[CellSpec]:
+    """Everything `resume` refuses, checked without writing; returns the grid's specs."""
+    sweep_dir, manifest = read_sweep(results, name)
+    specs = specs_from_manifest(manifest)
+    check_sweep_dir_readonly(sweep_dir)
+    check_not_running(sweep_dir)
+    return specs
 
 
 def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:
