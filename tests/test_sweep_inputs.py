@@ -138,14 +138,15 @@ def test_status_counts_per_domain_and_method(capsys, started_sweep):
 
 def test_counter_line_counts_and_eta():
     out = io.StringIO()
-    p = SweepCounter("s", total=10, already_done=4, stream=out)
+    cells = {f"c{i}": "signaling/asp" for i in range(10)}
+    p = SweepCounter("s", cells, done={"c0", "c1", "c2", "c3"}, stream=out, log_interval_s=0.0)
     assert "done 4/10" in p.line() and "pending 6" in p.line() and "ETA ?" in p.line()
     p.start -= 10.0
-    p.update(done=6, running=2, failed=1)
+    p.update(done={f"c{i}" for i in range(6)}, running={"c6", "c7"}, failed={"c8"})
     line = out.getvalue().splitlines()[-1]
     assert "done 6/10  running 2  failed 1  pending 1" in line
-    assert "ETA 0:15" in line  # 2 cells in 10 s, 3 left
-    p.update(running=2)  # no change in counts: no new line in a log
+    assert "12.0 cells/min  ETA 0:15" in line  # 2 cells in 10 s, 3 left
+    p.update(running={"c7"})  # the running count alone never prints a line in a log
     assert len(out.getvalue().splitlines()) == 1
     p.finish()
     assert format_duration(3725) == "1:02:05" and format_duration(None) == "?"

@@ -111,14 +111,14 @@ def trial_name(trial) -> str:
 
 # ---- driver side: counts and failures ------------------------------------------------------------
 class SweepCallback(tune.Callback):
-    """Feeds the sweep's counter line and records cells that failed after every retry.
+    """Feeds the sweep's progress view and records cells that failed after every retry.
 
     Tune pickles its callbacks with the experiment and a restored experiment brings back the
     pickled ones; only the path and the grid are pickled, and a restored callback starts its own
-    counter line on stderr."""
+    view on stderr."""
 
-    def __init__(self, sweep_dir: str, name: str, grid: list[str], counter: SweepCounter | None = None):
-        self.sweep_dir, self.name, self.grid = sweep_dir, name, grid
+    def __init__(self, sweep_dir: str, name: str, grid: dict[str, str], counter: SweepCounter | None = None):
+        self.sweep_dir, self.name, self.grid = sweep_dir, name, grid  # grid: cell id -> "domain/method"
         self.counter = counter
 
     def __reduce__(self):
@@ -127,16 +127,20 @@ class SweepCallback(tune.Callback):
     def _counter(self) -> SweepCounter:
         if self.counter is None:
             done, _ = ledger.finished_and_failed(Path(self.sweep_dir), self.grid)
-            self.counter = SweepCounter(self.name, total=len(self.grid), already_done=len(done))
+            self.counter = SweepCounter(self.name, self.grid, done, where=self.sweep_dir)
         return self.counter
+
+    @staticmethod
+    def _running(trials) -> set[str]:
+        return {t.config["cell"]["cell_id"] for t in trials if t.status == "RUNNING"}
 
     def _refresh(self, trials) -> None:
         done, failed = ledger.finished_and_failed(Path(self.sweep_dir), self.grid)
-        running = sum(1 for t in trials if t.status == "RUNNING")
-        self._counter().update(done=len(done), failed=len(failed), running=running)
+        self._counter().update(done=done, failed=failed, running=self._running(trials),
+                               last_failure=last_failure(Path(self.sweep_dir), failed))
 
     def on_step_end(self, iteration, trials, **info):
-        self._counter().update(running=sum(1 for t in trials if t.status == "RUNNING"))
+        self._counter().update(running=self._running(trials))
 
     def on_trial_start(self, iteration, trials, trial, **info):
         self._refresh(trials)
@@ -153,6 +157,15 @@ class SweepCallback(tune.Callback):
         store.record_failure(Path(self.sweep_dir), cell["cell_id"], spec["domain"], spec["method"],
                              f"failed after {trial.num_failures} attempt(s): {error}")
         self._refresh(trials)
+
+
+def last_failure(sweep_dir: Path, failed: set[str]) -> str:
+    """The newest failure of the grid, as "cell id: last line of its error"."""
+    records = [r for cell_id, r in store.failed_cells(sweep_dir).items() if cell_id in failed]
+    if not records:
+        return ""
+    newest = max(records, key=lambda r: str(r.get("failed_at", "")))
+    return f"{newest['cell_id']}: {store.last_error_line(newest)}"
 
 
 # ---- Ray ----------------------------------------------------------------------------------------
@@ -285,14 +298,14 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
     sweep_dir = ledger.sweep_dir_for(results, name)
     ledger.check_sweep_dir(sweep_dir)
     stream = stream or sys.stderr
-    grid = [s.cell_id for s in specs]
+    grid = {s.cell_id: f"{s.domain}/{s.method}" for s in specs}
     with ledger.sweep_lock(sweep_dir):
         manifest = ledger.check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
         if store.read_manifest(sweep_dir) is None:
             store.write_manifest(sweep_dir, manifest)
         done, _ = ledger.finished_and_failed(sweep_dir, grid)
         pending = [s for s in specs if s.cell_id not in done]
-        counter = SweepCounter(name, total=len(specs), already_done=len(done), stream=stream)
+        counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
         where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
         stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done), "
                      f"{where}, results in {sweep_dir}\n")
@@ -301,6 +314,6 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
             with ray_session(workers, address, ray_temp_dir):
                 _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
         done, failed = ledger.finished_and_failed(sweep_dir, grid)
-        counter.update(done=len(done), failed=len(failed), running=0)
+        counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
         counter.finish()
         return SweepResult(name, sweep_dir, len(specs), len(done), len(failed))
