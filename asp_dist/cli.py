@@ -183,13 +183,28 @@ def cmd_fields(args: argparse.Namespace) -> int:
 
 
 # ---- sweep, resume, status ----------------------------------------------------------------------
+DASHBOARD_MODULES = ("aiohttp", "aiohttp_cors", "grpc", "opencensus", "opentelemetry", "prometheus_client", "pydantic")
+
+
 def check_run_flags(args: argparse.Namespace) -> None:
     """The flags of sweep and resume that need no grid, refused before anything is read or written."""
-    from asp_dist.sweep.ledger import check_run_options
+    from asp_dist.sweep.ledger import check_run_options, parse_address
 
-    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every, args.connect_timeout)
     if args.address is not None and not args.address.strip():
         raise SpecError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
+    if args.address is not None:
+        parse_address(args.address)
+        if args.dashboard:
+            raise SpecError("--dashboard starts the embedded Ray's dashboard; a cluster's own is set by "
+                            "`ray start` (leave out --address or --dashboard)")
+    if args.dashboard:
+        import importlib.util
+
+        missing = [m for m in DASHBOARD_MODULES if importlib.util.find_spec(m) is None]
+        if missing:
+            raise SpecError(f"--dashboard needs Ray's dashboard packages ({', '.join(missing)} missing): "
+                            f"pip install 'ray[default]', or leave out --dashboard")
     if args.ray_temp_dir is not None:
         temp = Path(args.ray_temp_dir).expanduser()
         if not str(args.ray_temp_dir).strip():
@@ -200,7 +215,34 @@ def check_run_flags(args: argparse.Namespace) -> None:
 
 def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return dict(results=args.results, workers=args.workers, address=args.address, max_failures=args.max_failures,
-                checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir)
+                checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir, dashboard=args.dashboard,
+                connect_timeout_s=args.connect_timeout)
+
+
+def _interruptible(args: argparse.Namespace, name_of, run) -> int:
+    """Run a sweep command with SIGTERM behaving as Ctrl-C from its first line on (ledger.sigterm_as_interrupt):
+    the sweep stops, its lock and Ray are released, finished cells stay. Exit 128 + the signal."""
+    import signal
+
+    from asp_dist.sweep import ledger
+
+    with ledger.sigterm_as_interrupt():
+        try:
+            return run()
+        except (KeyboardInterrupt, SystemExit) as e:
+            # ray.init answers SIGTERM with sys.exit(SIGTERM) while it starts, before its handler is replaced.
+            if isinstance(e, SystemExit) and e.code != signal.SIGTERM:
+                raise
+            signum = signal.SIGTERM if isinstance(e, SystemExit) else (ledger.interrupted_by or signal.SIGINT)
+            name = name_of()
+            hint = ""
+            try:
+                if name is not None and store.read_manifest(Path(args.results) / name) is not None:
+                    hint = f"; finished cells are kept: asp-dist resume {name} --results {args.results}"
+            except (OSError, SpecError):
+                pass
+            print(f"asp-dist: interrupted ({signal.Signals(signum).name}){hint}", file=sys.stderr)
+            return 128 + signum
 
 
 def _finish(result) -> int:
@@ -218,30 +260,44 @@ def _finish(result) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from asp_dist.sweep.ledger import check_can_start
-    from asp_dist.sweep.spaces import expand, space_file
+    name: list[str] = []
 
-    # Everything a user can get wrong is refused before paying for the Ray import, and nothing is written
-    # until then: flags, space, name, results dir, an existing sweep's grid and lock, the data.
-    check_run_flags(args)
-    specs = expand(args.space)
-    space = space_file(args.space).stem
-    check_can_start(args.results, args.name if args.name is not None else space, specs, space)
-    check_data(specs)
-    from asp_dist.sweep.tune import run_sweep
+    def run() -> int:
+        from asp_dist.sweep.ledger import check_address, check_can_start
+        from asp_dist.sweep.spaces import expand, space_file
 
-    return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
+        # Everything a user can get wrong is refused before paying for the Ray import, and nothing is written
+        # until then: flags, space, name, results dir, an existing sweep's grid and lock, the data, a cluster
+        # that does not answer.
+        check_run_flags(args)
+        specs = expand(args.space)
+        space = space_file(args.space).stem
+        name.append(args.name if args.name is not None else space)
+        check_can_start(args.results, name[0], specs, space)
+        check_data(specs)
+        if args.address is not None:
+            check_address(args.address, args.connect_timeout)
+        from asp_dist.sweep.tune import run_sweep
+
+        return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
+
+    return _interruptible(args, lambda: name[0] if name else None, run)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    from asp_dist.sweep.ledger import check_can_resume
+    def run() -> int:
+        from asp_dist.sweep.ledger import check_address, check_can_resume
 
-    check_run_flags(args)
-    specs = check_can_resume(args.results, args.name)  # an unknown or broken sweep too, before the Ray import
-    check_data(specs)
-    from asp_dist.sweep.tune import resume_sweep
+        check_run_flags(args)
+        specs = check_can_resume(args.results, args.name)  # an unknown or broken sweep too, before the Ray import
+        check_data(specs)
+        if args.address is not None:
+            check_address(args.address, args.connect_timeout)
+        from asp_dist.sweep.tune import resume_sweep
 
-    return _finish(resume_sweep(args.name, **_run_kwargs(args)))
+        return _finish(resume_sweep(args.name, **_run_kwargs(args)))
+
+    return _interruptible(args, lambda: args.name, run)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -436,6 +492,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="SECONDS",
                    help="checkpoint interval of a running cell: at most this much work is lost on a crash")
     p.add_argument("--ray-temp-dir", default=None, help="temp dir of the embedded Ray (default /tmp/asp-ray-$USER)")
+    p.add_argument("--connect-timeout", type=float, default=20.0, metavar="SECONDS",
+                   help="with --address: give up (exit 2, nothing written) if the cluster does not answer "
+                        "within this time (default 20)")
+    p.add_argument("--dashboard", action="store_true",
+                   help="start the embedded Ray's dashboard, on 127.0.0.1 only (default: none)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,5 +1,6 @@
-"""The sweep ledger without Ray: names, the directory check, the lock (also after SIGKILL), the
-manifest against the grid, specs from the manifest, and the status text."""
+"""The sweep ledger without Ray: names, the directory check, the lock (also after SIGKILL), status
+reading a running sweep without disturbing it, SIGTERM as Ctrl-C, the manifest against the grid,
+specs from the manifest, and the status text."""
 
 from __future__ import annotations
 
@@ -67,6 +68,97 @@ def test_lock_refuses_a_second_run_and_dies_with_its_holder(tmp_path):
     assert ledger.lock_holder(tmp_path) is None, "a killed holder's lock was not released"
     with ledger.sweep_lock(tmp_path):
         pass
+
+
+PROBE_LOOP = """import sys, time
+from pathlib import Path
+from asp_dist.sweep.ledger import lock_holder
+print('probing', flush=True)
+end = time.monotonic() + float(sys.argv[2])
+n = 0
+while time.monotonic() < end:
+    lock_holder(Path(sys.argv[1]))
+    n += 1
+print(n, flush=True)
+"""
+
+
+def test_status_reads_a_running_sweep_without_blocking_or_refusing_it(tmp_path, smoke_specs):
+    sweep_dir = tmp_path / "exp"
+    sweep_dir.mkdir()
+    store.write_manifest(sweep_dir, ledger.new_manifest("exp", "smoke", smoke_specs))
+    assert "not running" in ledger.sweep_status("exp", tmp_path)
+    assert not (sweep_dir / ledger.LOCK_FILE).exists(), "status created the lock file"
+
+    # A run holding the lock in another process: status answers at once, names it, and changes nothing.
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path\n"
+                               "from asp_dist.sweep.ledger import sweep_lock\n"
+                               "with sweep_lock(Path(sys.argv[1])):\n"
+                               "    print('locked', flush=True); time.sleep(600)\n", str(sweep_dir)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        lock_text = (sweep_dir / ledger.LOCK_FILE).read_bytes()
+        start = time.monotonic()
+        text = ledger.sweep_status("exp", tmp_path)
+        assert time.monotonic() - start < 1.0
+        assert f"RUNNING (pid {holder.pid} on " in text.splitlines()[0]
+        assert (sweep_dir / ledger.LOCK_FILE).read_bytes() == lock_text
+    finally:
+        holder.kill()
+        holder.wait(30)
+
+    # Another status probing at the same time (a shared lock) is not a run: status says "not running",
+    # and a run starting meanwhile is not refused.
+    import fcntl
+
+    with open(sweep_dir / ledger.LOCK_FILE) as other_status:
+        fcntl.flock(other_status, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        assert ledger.lock_holder(sweep_dir) is None
+        assert "not running" in ledger.sweep_status("exp", tmp_path)
+        fcntl.flock(other_status, fcntl.LOCK_UN)
+
+    # status polled in a tight loop by another process never makes a starting run refuse (before: the
+    # probe took the exclusive lock, and a run starting during a probe was told the sweep was running).
+    prober = subprocess.Popen([sys.executable, "-c", PROBE_LOOP, str(sweep_dir), "6"], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert prober.stdout.readline().strip() == "probing"
+        starts = 0
+        while prober.poll() is None and starts < 200:
+            with ledger.sweep_lock(sweep_dir):
+                starts += 1
+        probes = int(prober.stdout.readline())
+    finally:
+        prober.kill()
+        prober.wait(30)
+    assert starts >= 20 and probes >= 100, (starts, probes)
+
+
+def test_sigterm_stops_a_sweep_like_ctrl_c(monkeypatch):
+    previous = signal.getsignal(signal.SIGTERM)
+    with ledger.sigterm_as_interrupt():
+        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
+        with ledger.sigterm_as_interrupt():  # nested: a no-op
+            pass
+        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        assert ledger.interrupted_by == signal.SIGTERM
+        # While Tune runs it owns SIGINT (a graceful stop): SIGTERM goes the same way.
+        tune_stops = []
+        monkeypatch.setattr(signal, "getsignal", lambda s, real=signal.getsignal:
+                            (lambda n, f: tune_stops.append(n)) if s == signal.SIGINT else real(s))
+        ledger._sigterm(signal.SIGTERM, None)
+        assert tune_stops == [signal.SIGINT]
+        # A background job ignores SIGINT; SIGTERM still stops it.
+        monkeypatch.setattr(signal, "getsignal", lambda s, real=signal.getsignal:
+                            signal.SIG_IGN if s == signal.SIGINT else real(s))
+        with pytest.raises(KeyboardInterrupt):
+            ledger._sigterm(signal.SIGTERM, None)
+        monkeypatch.undo()
+    assert signal.getsignal(signal.SIGTERM) is previous
 
 
 def test_manifest_keeps_the_grid_and_refuses_another(tmp_path, smoke_specs):

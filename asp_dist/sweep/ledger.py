@@ -2,6 +2,8 @@
 
 Everything a sweep checks and records around running cells, and nothing that runs them: no Ray
 import, so `asp-dist status`, input validation and their tests are fast and need no cluster.
+Also here, for the same reason: the check that a cluster address answers (before Ray is imported
+and anything is written) and SIGTERM handled as Ctrl-C from a sweep command's first line on.
 The files themselves (manifest, finished cells, failures) are laid out by asp_dist.results.store;
 this module decides what they must say for a sweep to start, continue or be reported.
 """
@@ -12,8 +14,11 @@ import fcntl
 import math
 import os
 import re
+import signal
 import socket
 import tempfile
+import threading
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -28,6 +33,10 @@ from asp_dist.sweep.spaces import grid_hash
 
 SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
 LOCK_FILE = ".lock"
+# How long a starting run retries the lock before calling the sweep busy: `status` probes it with a
+# shared lock held for microseconds, and a probe must never make a starting run refuse.
+LOCK_GRACE_S = 2.0
+DEFAULT_CONNECT_TIMEOUT_S = 20.0
 
 
 @dataclass
@@ -85,7 +94,8 @@ def check_sweep_dir_readonly(sweep_dir: Path) -> None:
                          f"choose another with --results")
 
 
-def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float) -> None:
+def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float,
+                      connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
     """The numbers of a run, refused before Ray is imported."""
     for flag, value in (("--workers", workers), ("--max-failures", max_failures)):
         if isinstance(value, bool) or not isinstance(value, int):
@@ -94,25 +104,132 @@ def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float
         raise SweepError(f"--workers must be >= 1, got {workers}")
     if max_failures < 0:
         raise SweepError(f"--max-failures must be >= 0, got {max_failures}")
-    if not (isinstance(checkpoint_every_s, (int, float)) and math.isfinite(checkpoint_every_s)
-            and checkpoint_every_s > 0):
-        raise SweepError(f"--checkpoint-every must be > 0 seconds and finite, got {checkpoint_every_s}")
+    for flag, value in (("--checkpoint-every", checkpoint_every_s), ("--connect-timeout", connect_timeout_s)):
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                and value > 0):
+            raise SweepError(f"{flag} must be > 0 seconds and finite, got {value}")
+
+
+# ---- the cluster address -------------------------------------------------------------------------
+def parse_address(address: str) -> tuple[str, int] | None:
+    """(host, port) of --address (HOST:PORT, [IPv6]:PORT or ray://HOST:PORT); None for "auto"."""
+    text = address.strip()
+    if text == "auto":
+        return None
+    if text.startswith("ray://"):
+        text = text[len("ray://"):]
+    host, sep, port = text.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise SweepError(f"--address {address!r}: write HOST:PORT of the cluster's head (e.g. 127.0.0.1:6379)")
+    return host, int(port)
+
+
+def _resolve(host: str, port: int, timeout_s: float) -> list[tuple]:
+    """getaddrinfo with a deadline: the resolver's own retries can take much longer than --connect-timeout."""
+    answer: list = []
+
+    def lookup() -> None:
+        try:
+            answer.append(socket.getaddrinfo(host, port, type=socket.SOCK_STREAM))
+        except OSError as e:
+            answer.append(e)
+
+    thread = threading.Thread(target=lookup, daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    if not answer:
+        raise TimeoutError(f"no answer from the resolver for {host!r}")
+    if isinstance(answer[0], OSError):
+        raise answer[0]
+    return answer[0]
+
+
+def check_address(address: str, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
+    """Refuse, within ``timeout_s``, a cluster address nothing answers on: resolve the head and open a TCP
+    connection to it, retrying while a head may still be starting. Needs no Ray, so it runs before Ray is
+    imported and before anything is written. ("auto" is Ray's to find; it is bounded by tune.ray_session.)"""
+    parsed = parse_address(address)
+    if parsed is None:
+        return
+    host, port = parsed
+    deadline = time.monotonic() + timeout_s
+    why = "no answer"
+    while (remaining := deadline - time.monotonic()) > 0:
+        try:
+            for family, kind, proto, _, sockaddr in _resolve(host, port, remaining):
+                with socket.socket(family, kind, proto) as sock:
+                    sock.settimeout(max(0.1, min(5.0, deadline - time.monotonic())))
+                    try:
+                        sock.connect(sockaddr)
+                        return
+                    except OSError as e:
+                        why = e.strerror or type(e).__name__
+        except socket.gaierror as e:
+            if e.errno != socket.EAI_AGAIN:  # an unknown host stays unknown: no point in waiting
+                raise SweepError(f"cannot reach the Ray cluster at {address}: unknown host {host!r} "
+                                 f"({e.strerror}); check --address") from None
+            why = e.strerror or "resolver failed"
+        except (OSError, TimeoutError) as e:
+            why = str(e) or type(e).__name__
+        time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+    raise SweepError(f"cannot reach the Ray cluster at {address} within {timeout_s:g} s ({why}); "
+                     f"check --address, or raise --connect-timeout")
+
+
+# ---- signals -------------------------------------------------------------------------------------
+interrupted_by: int | None = None  # the last signal that interrupted a sweep (SIGTERM); None for Ctrl-C
+
+
+def _sigterm(signum, frame) -> None:
+    """SIGTERM is Ctrl-C: while a Tune run goes on, Tune's SIGINT handler (a graceful stop that saves the
+    experiment; a second signal interrupts at once), else KeyboardInterrupt."""
+    global interrupted_by
+    interrupted_by = signum
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler) and handler is not signal.default_int_handler and not getattr(handler, "asp_interrupt", False):
+        handler(signal.SIGINT, frame)  # Tune's
+        return
+    raise KeyboardInterrupt  # also where SIGINT is ignored (a background job): SIGTERM must still stop the sweep
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within: SIGTERM stops the sweep as Ctrl-C does, at any stage, with the same cleanup (the lock,
+    Ray's processes). Only the main thread can own signals; elsewhere, and when already set, a no-op."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is _sigterm:
+        yield
+        return
+    global interrupted_by
+    interrupted_by = None
+    previous = signal.signal(signal.SIGTERM, _sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 # ---- lock ----------------------------------------------------------------------------------------
 @contextmanager
-def sweep_lock(sweep_dir: Path) -> Iterator[None]:
+def sweep_lock(sweep_dir: Path, grace_s: float = LOCK_GRACE_S) -> Iterator[None]:
     """Refuse a second concurrent run of one sweep. fcntl: the OS drops the lock when its holder dies,
-    even by SIGKILL, so a crashed run never blocks the resume."""
+    even by SIGKILL, so a crashed run never blocks the resume. Retried for ``grace_s`` so that a
+    `status` probing the lock at that moment (lock_holder) never makes the run refuse."""
     fh = open(sweep_dir / LOCK_FILE, "a+")
     try:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            fh.seek(0)
-            holder = fh.read().strip() or "another process"
-            raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
-                             f"or use another --name") from None
+        deadline = time.monotonic() + grace_s
+        while True:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    continue
+                fh.seek(0)
+                holder = fh.read().strip() or "another process"
+                raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
+                                 f"or use another --name") from None
         fh.seek(0)
         fh.truncate()
         fh.write(f"pid {os.getpid()} on {socket.gethostname()} since "
@@ -124,15 +241,19 @@ def sweep_lock(sweep_dir: Path) -> Iterator[None]:
 
 
 def lock_holder(sweep_dir: Path) -> str | None:
-    """Who holds the sweep's lock, or None if no run of the sweep is going on."""
-    path = sweep_dir / LOCK_FILE
-    if not path.exists():
+    """Who holds the sweep's lock, or None if no run of the sweep is going on.
+
+    Never blocks and never refuses anyone: the file is opened read-only (nothing is created or written)
+    and probed with a *shared* lock, which fails only against a run's exclusive one. Two probes never
+    see each other as a run, and a run starting during a probe retries (sweep_lock's grace)."""
+    try:
+        fh = open(sweep_dir / LOCK_FILE)
+    except FileNotFoundError:
         return None
-    with open(path, "a+") as fh:
+    with fh:
         try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
-            fh.seek(0)
             return fh.read().strip() or "unknown"
         fcntl.flock(fh, fcntl.LOCK_UN)
     return None

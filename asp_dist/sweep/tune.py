@@ -6,7 +6,8 @@ Flow of ``run_sweep`` / ``resume_sweep``:
    before anything is written (asp_dist.sweep.ledger, no Ray);
 2. take the sweep's lock (``results/<sweep>/.lock``, fcntl: released by the OS even after SIGKILL);
 3. drop the cells that already have a Parquet file (the record that a cell is done);
-4. start an embedded Ray (or join ``--address``) and run one Tune trial per remaining cell,
+4. start an embedded Ray (or join ``--address``: that connection is made, within
+   ``--connect-timeout``, before anything is written) and run one Tune trial per remaining cell,
    1 CPU each, ``reuse_actors=True``, at most ``workers`` at once. If the previous run of this
    sweep was interrupted, its Tune experiment is restored (``Tuner.restore``) so running cells
    continue from their last checkpoint (``tune.get_checkpoint``);
@@ -16,6 +17,11 @@ Flow of ``run_sweep`` / ``resume_sweep``:
 A worker that dies is retried ``max_failures`` times from its last checkpoint; a cell that
 still fails (or fails deterministically, e.g. a base that never meets its bar) is recorded
 under ``failed/`` and the sweep goes on. ``resume`` retries failed cells.
+
+Nothing is left behind: checkpoints are staged under the sweep's own ``tune/.ckpt-tmp/``; SIGTERM
+stops a sweep as Ctrl-C does (ledger.sigterm_as_interrupt); a reaper process ends the embedded
+Ray's processes within seconds when the driver dies, even by SIGKILL; and old session
+directories of the embedded Ray are pruned at start.
 """
 
 from __future__ import annotations
@@ -24,9 +30,15 @@ import getpass
 import json
 import logging
 import os
+import select
+import shutil
+import signal
+import subprocess
 import sys
 import tempfile
-from contextlib import contextmanager
+import threading
+import time
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
@@ -39,6 +51,7 @@ import ray  # noqa: E402
 import torch  # noqa: E402
 from ray import tune  # noqa: E402
 
+from asp_dist.data.mnist import MNISTError  # noqa: E402
 from asp_dist.errors import SpecError, SweepError  # noqa: E402
 from asp_dist.fsutil import atomic_write  # noqa: E402
 from asp_dist.results import store  # noqa: E402
@@ -58,6 +71,9 @@ DEFAULT_MAX_FAILURES = 2
 DEFAULT_CHECKPOINT_EVERY_S = 30.0
 TUNE_DIR = "tune"
 TUNE_CURRENT = "current.json"  # which Tune experiment covers which cells
+CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
+RAY_SESSIONS_KEPT = 3  # session_* dirs of the embedded Ray kept at start (logs of the last runs)
+RAY_SESSION_MIN_AGE_S = 300.0  # a younger session may belong to a Ray that is starting: never pruned
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +95,17 @@ def train_cell(config: dict[str, Any]) -> None:
         with checkpoint.as_directory() as d:
             restore = torch.load(Path(d) / "state.pt", weights_only=False)
 
+    staging = sweep_dir / TUNE_DIR / CKPT_TMP
+
     def save(state: dict) -> None:
-        with tempfile.TemporaryDirectory(prefix="asp-ckpt-") as d:
-            torch.save(state, Path(d) / "state.pt")
-            # Persisted to the trial's storage before report() returns.
+        # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
+        # written under a temp name and renamed, and removed once report() returns: Tune has copied
+        # it into the trial's storage by then.
+        staging.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f"{cell_id}-", dir=staging) as d:
+            part = Path(d) / ".state.pt.part"
+            torch.save(state, part)
+            os.replace(part, Path(d) / "state.pt")
             tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
                         checkpoint=tune.Checkpoint.from_directory(d))
 
@@ -91,8 +114,9 @@ def train_cell(config: dict[str, Any]) -> None:
         curve: list[dict[str, float]] = []
         row = run_cell(spec, base=base, checkpoint=save, restore=restore,
                        checkpoint_every_s=config["checkpoint_every_s"], curve=curve)
-    except (SpecError, BaseRejected) as e:
-        # Deterministic: a retry would fail the same way. Record and let the sweep go on.
+    except (SpecError, BaseRejected, MNISTError) as e:
+        # Deterministic (a bad spec, a base that never meets its bar, missing or corrupt data): a retry
+        # would fail the same way. Record it once and let the sweep go on; `resume` tries it again.
         store.record_failure(sweep_dir, cell_id, spec.domain, spec.method, f"{type(e).__name__}: {e}")
         tune.report({"cell_done": 0, "cell_failed": 1})
         return
@@ -175,23 +199,247 @@ def default_ray_temp_dir() -> str:
 
 
 @contextmanager
-def ray_session(workers: int, address: str | None, temp_dir: str | None) -> Iterator[None]:
+def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dashboard: bool = False,
+                connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
+                stream: TextIO | None = None) -> Iterator[None]:
+    """Ray for one run: joined at ``address`` within ``connect_timeout_s``, or embedded (its old
+    session dirs pruned, no dashboard unless asked, and then on 127.0.0.1 only, a reaper that ends
+    its processes when this process dies). Shut down on the way out, however the run ends."""
     if ray.is_initialized():
         raise SweepError("Ray is already initialised in this process; run the sweep in a fresh process")
     common = dict(log_to_driver=False, logging_level=logging.WARNING, configure_logging=True)
+    main_thread = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if main_thread else None
+    reaper = None
     try:
-        if address:
-            ray.init(address=address, **common)
-        else:
-            os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # local-only default: nothing listens outside
-            ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir or default_ray_temp_dir(),
-                     include_dashboard=False, object_store_memory=OBJECT_STORE_BYTES, **common)
-    except ConnectionError as e:
-        raise SweepError(f"cannot connect to the Ray cluster at {address}: {e}") from None
+        try:
+            if address:
+                with _connect_deadline(address, connect_timeout_s):
+                    ray.init(address=address, **common)
+            else:
+                # Absolute: the reaper finds Ray's processes by this path in their command lines.
+                temp_dir = os.path.abspath(os.path.expanduser(temp_dir or default_ray_temp_dir()))
+                for pruned in prune_ray_sessions(temp_dir):
+                    log.info("pruned old Ray session %s", pruned)
+                reaper = _start_reaper(temp_dir)
+                os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # local-only default: nothing listens outside
+                context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir,
+                                   include_dashboard=dashboard, dashboard_host="127.0.0.1",
+                                   object_store_memory=OBJECT_STORE_BYTES, **common)
+                if dashboard and context.dashboard_url:
+                    (stream or sys.stderr).write(f"Ray dashboard: http://{context.dashboard_url}\n")
+        except ConnectionError as e:
+            raise SweepError(f"cannot connect to the Ray cluster at {address}: {e}") from None
+        finally:
+            # ray.init sets its own SIGTERM handler (sys.exit); put back the sweep's (ledger.sigterm_as_interrupt).
+            if sigterm is not None:
+                signal.signal(signal.SIGTERM, sigterm)
+        yield
+    finally:
+        try:
+            ray.shutdown()
+        finally:
+            _stop_reaper(reaper)
+
+
+def _hard_exit(code: int, message: str) -> None:
+    try:
+        os.write(2, (message + "\n").encode())
+    finally:
+        os._exit(code)
+
+
+@contextmanager
+def _connect_deadline(address: str, timeout_s: float) -> Iterator[None]:
+    """Bound ray.init(address=...). It waits for an unresponsive head for minutes inside Ray's C++ client,
+    where neither exceptions nor signal handlers reach it; a watcher thread ends the process instead:
+    exit 2 at the deadline, 128+N on SIGINT/SIGTERM. Nothing has been written by then (see _run)."""
+    done = threading.Event()
+    wake_r = wake_w = None
+    if threading.current_thread() is threading.main_thread():
+        # The C-level signal handler writes the signal number here even while the main thread is stuck.
+        wake_r, wake_w = os.pipe()
+        os.set_blocking(wake_w, False)
+        previous_wakeup = signal.set_wakeup_fd(wake_w, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while not done.is_set():
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                _hard_exit(2, f"asp-dist: error: no answer from the Ray cluster at {address} within "
+                              f"{timeout_s:g} s; check --address, or raise --connect-timeout")
+            if wake_r is None:
+                done.wait(min(remaining, 0.5))
+                continue
+            ready, _, _ = select.select([wake_r], [], [], min(remaining, 0.5))
+            for signum in (os.read(wake_r, 64) if ready else b""):
+                if signum in (signal.SIGINT, signal.SIGTERM) and not done.wait(1.0):
+                    # The main thread did not get to its handler within a second: it is inside Ray's wait.
+                    _hard_exit(128 + signum, f"asp-dist: interrupted while connecting to the Ray cluster at {address}")
+
+    watcher = threading.Thread(target=watch, name="asp-connect-deadline", daemon=True)
+    watcher.start()
     try:
         yield
     finally:
-        ray.shutdown()
+        done.set()
+        watcher.join(5)
+        if wake_r is not None:
+            signal.set_wakeup_fd(previous_wakeup)
+            os.close(wake_r)
+            os.close(wake_w)
+
+
+# ---- the embedded Ray's processes and session dirs --------------------------------------------------
+# Ray's raylet and GCS die with the driver (PR_SET_PDEATHSIG), but after a SIGKILL of the driver the
+# raylet's agents spend a minute trying to tell the dead GCS about it, and workers may take a few
+# seconds. The reaper is a tiny process (no Ray, no torch) that waits for the driver to close a pipe --
+# at the end of ray_session or when it dies, however -- and then kills what remains of the embedded
+# Ray: the node processes it saw the driver start (children whose command line names the temp dir),
+# and every process of that raylet (RAY_RAYLET_PID in its environment: agents, workers).
+REAPER = r"""
+import os, select, signal, sys, time
+signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle; this cleans up after it
+driver, temp_dir = int(sys.argv[1]), os.fsencode(sys.argv[2])
+
+def stat(pid):  # (command name, parent pid, start time) or None
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    fields = data[data.rindex(b")") + 2:].split()
+    return data[data.index(b"(") + 1:data.rindex(b")")], int(fields[1]), int(fields[19])
+
+def read(pid, name):
+    try:
+        with open(f"/proc/{pid}/{name}", "rb") as f:
+            return f.read().split(b"\0")
+    except OSError:
+        return []
+
+def pids():
+    return [int(p) for p in os.listdir("/proc") if p.isdigit() and int(p) not in (driver, os.getpid())]
+
+tracked, raylet, scan_until = {}, None, None
+while True:
+    scanning = scan_until is None or time.monotonic() < scan_until
+    if select.select([0], [], [], 0.5 if scanning else None)[0] and not os.read(0, 4096):
+        break  # EOF: the driver closed the pipe or died
+    if scanning:
+        for pid in pids():
+            st = stat(pid)
+            if st and st[1] == driver and pid not in tracked and any(temp_dir in a for a in read(pid, "cmdline")):
+                tracked[pid] = st[2]
+                if st[0] == b"raylet" and raylet is None:
+                    raylet, scan_until = (pid, st[2]), time.monotonic() + 10
+for attempt in range(3):
+    for pid in pids():
+        st = stat(pid)
+        if st is None:
+            continue
+        ours = tracked.get(pid) == st[2] or (
+            raylet is not None and st[2] >= raylet[1] and b"RAY_RAYLET_PID=%d" % raylet[0] in read(pid, "environ"))
+        if ours:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+    time.sleep(0.3)
+"""
+
+
+def _start_reaper(temp_dir: str) -> tuple[subprocess.Popen, int] | None:
+    """The reaper of the embedded Ray about to start (Linux: it reads /proc), and the pipe it watches."""
+    if not os.path.isdir("/proc/self"):
+        return None
+    read_end, write_end = os.pipe()  # not inheritable: only the reaper gets an end of it
+    try:
+        proc = subprocess.Popen([sys.executable, "-I", "-S", "-c", REAPER, str(os.getpid()), temp_dir],
+                                stdin=read_end, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError as e:
+        os.close(write_end)
+        log.warning("no reaper for the embedded Ray (%s): its processes may outlive a killed driver", e)
+        return None
+    finally:
+        os.close(read_end)
+    return proc, write_end
+
+
+def _stop_reaper(reaper: tuple[subprocess.Popen, int] | None) -> None:
+    """After ray.shutdown: the reaper kills any straggler and exits."""
+    if reaper is None:
+        return
+    proc, write_end = reaper
+    os.close(write_end)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _processes_using(root: Path) -> set[str]:
+    """Names of the session dirs under ``root`` that a live process names in its command line, works in,
+    or holds a file of (Linux /proc; unreadable processes are skipped)."""
+    prefix = f"{root}/session_"
+    used: set[str] = set()
+
+    def note(text: str) -> None:
+        start = text.find(prefix)
+        while start >= 0:
+            used.add(text[start + len(prefix) - len("session_"):].split("/", 1)[0].split()[0])
+            start = text.find(prefix, start + 1)
+
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            note((proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+            note(os.readlink(proc / "cwd"))
+            for fd in (proc / "fd").iterdir():
+                note(os.readlink(fd))
+        except OSError:
+            continue
+    return used
+
+
+def prune_ray_sessions(temp_dir: str | Path, keep: int = RAY_SESSIONS_KEPT,
+                       min_age_s: float = RAY_SESSION_MIN_AGE_S) -> list[Path]:
+    """Remove old ``session_*`` dirs of an embedded Ray's temp dir, keeping the newest ``keep``, and
+    never one that ``session_latest`` points to, that changed in the last ``min_age_s`` seconds, whose
+    driver is alive, or that a live process uses. Returns the removed dirs. Needs /proc: elsewhere,
+    and when the dir cannot be read, nothing is removed."""
+    root = Path(temp_dir).expanduser().absolute()
+    if not root.is_dir() or not os.path.isdir("/proc/self"):
+        return []
+    try:
+        sessions = sorted((p for p in root.iterdir() if p.name.startswith("session_") and p.name != "session_latest"
+                           and not p.is_symlink() and p.is_dir()), key=lambda p: p.name, reverse=True)
+    except OSError:
+        return []
+    candidates = sessions[keep:]  # the names sort by start time: session_<date>_<time>_<us>_<driver pid>
+    if not candidates:
+        return []
+    latest = root / "session_latest"
+    latest = latest.resolve() if latest.is_symlink() else None
+    used = _processes_using(root)
+    removed = []
+    now = time.time()
+    for session in candidates:
+        try:
+            changed = max(session.stat().st_mtime, *(p.stat().st_mtime for p in session.iterdir()))
+        except (OSError, ValueError):
+            continue
+        driver = session.name.rsplit("_", 1)[-1]
+        if (session.resolve() == latest or now - changed < min_age_s or session.name in used
+                or (driver.isdigit() and Path(f"/proc/{driver}").exists())):
+            continue
+        shutil.rmtree(session, ignore_errors=True)
+        if not session.exists():
+            removed.append(session)
+    return removed
 
 
 def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
@@ -225,7 +473,7 @@ def _run_tune(sweep_dir: Path, callback: SweepCallback, pending: list[CellSpec],
     experiment, restore = _tune_experiment(sweep_dir, pending)
     if restore:
         try:
-            _restored_tuner(sweep_dir, experiment).fit()
+            _fit(_restored_tuner(sweep_dir, experiment))
         except Exception as e:  # noqa: BLE001 - an unreadable Tune state must not block the sweep
             log.warning("could not restore Tune experiment %s (%s); starting a new one", experiment, e)
         # Tune does not rerun trials it saw finish, e.g. a cell that failed deterministically
@@ -234,7 +482,42 @@ def _run_tune(sweep_dir: Path, callback: SweepCallback, pending: list[CellSpec],
         if not pending:
             return
         experiment, _ = _tune_experiment(sweep_dir, pending, allow_restore=False)
-    _new_tuner(sweep_dir, callback, experiment, pending, workers, max_failures, checkpoint_every_s).fit()
+    _fit(_new_tuner(sweep_dir, callback, experiment, pending, workers, max_failures, checkpoint_every_s))
+
+
+class _InterruptMark:
+    """SIGINT handler while Tune runs, until Tune installs its own: Tune puts the previous handler back
+    when (and only when) a SIGINT (or SIGTERM, ledger.sigterm_as_interrupt) made it stop, so finding
+    this mark back after fit() means that Tune stopped early, saved its state and returned."""
+
+    asp_interrupt = True  # ledger._sigterm: raise, do not call
+
+    def __init__(self, previous):
+        self.previous = previous
+
+    def __call__(self, signum, frame):
+        if callable(self.previous):
+            return self.previous(signum, frame)
+        if self.previous != signal.SIG_IGN:
+            raise KeyboardInterrupt
+
+
+def _fit(tuner: tune.Tuner) -> None:
+    """tuner.fit(), raising KeyboardInterrupt if Tune stopped early on a signal: Tune's own SIGINT
+    handling returns normally, and the sweep must neither go on nor report a finished run."""
+    if threading.current_thread() is not threading.main_thread() or os.environ.get("TUNE_DISABLE_SIGINT_HANDLER"):
+        tuner.fit()
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    mark = _InterruptMark(previous)
+    signal.signal(signal.SIGINT, mark)
+    try:
+        tuner.fit()
+    finally:
+        stopped_on_signal = signal.getsignal(signal.SIGINT) is mark
+        signal.signal(signal.SIGINT, previous)  # also replaces a finished run's stale Tune handler
+    if stopped_on_signal:
+        raise KeyboardInterrupt
 
 
 def _trainable():
@@ -271,49 +554,63 @@ def _new_tuner(sweep_dir: Path, callback: SweepCallback, experiment: str, pendin
 def run_sweep(space: str, *, name: str | None = None, results: str | Path = store.DEFAULT_RESULTS, workers: int = 2,
               address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
               checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
+              dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
               stream: TextIO | None = None) -> SweepResult:
     """Run (or continue) the sweep ``name`` over ``space``; see the module docstring."""
-    ledger.check_run_options(workers, max_failures, checkpoint_every_s)
+    ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
     specs = expand(space)
     space_name = space_file(space).stem
     return _run(specs, space_name, name or space_name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, stream)
+                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream)
 
 
 def resume_sweep(name: str, *, results: str | Path = store.DEFAULT_RESULTS, workers: int = 2,
                  address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
                  checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
+                 dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
                  stream: TextIO | None = None) -> SweepResult:
     """Continue a sweep from its manifest (no space file needed)."""
-    ledger.check_run_options(workers, max_failures, checkpoint_every_s)
+    ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
     _, manifest = ledger.read_sweep(results, name)
     specs = ledger.specs_from_manifest(manifest)
     return _run(specs, manifest["space"], name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, stream)
+                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream)
 
 
 def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, workers: int, address: str | None,
-         max_failures: int, checkpoint_every_s: float, ray_temp_dir: str | None,
-         stream: TextIO | None) -> SweepResult:
+         max_failures: int, checkpoint_every_s: float, ray_temp_dir: str | None, dashboard: bool,
+         connect_timeout_s: float, stream: TextIO | None) -> SweepResult:
     sweep_dir = ledger.sweep_dir_for(results, name)
-    ledger.check_sweep_dir(sweep_dir)
     stream = stream or sys.stderr
     grid = {s.cell_id: f"{s.domain}/{s.method}" for s in specs}
-    with ledger.sweep_lock(sweep_dir):
-        manifest = ledger.check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
-        if store.read_manifest(sweep_dir) is None:
-            store.write_manifest(sweep_dir, manifest)
-        done, _ = ledger.finished_and_failed(sweep_dir, grid)
-        pending = [s for s in specs if s.cell_id not in done]
-        counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
-        where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
-        stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done), "
-                     f"{where}, results in {sweep_dir}\n")
-        if pending:
-            callback = SweepCallback(str(sweep_dir), name, grid, counter)
-            with ray_session(workers, address, ray_temp_dir):
-                _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
-        done, failed = ledger.finished_and_failed(sweep_dir, grid)
-        counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
-        counter.finish()
-        return SweepResult(name, sweep_dir, len(specs), len(done), len(failed))
+
+    def session():
+        return ray_session(workers, address, ray_temp_dir, dashboard=dashboard, connect_timeout_s=connect_timeout_s,
+                           stream=stream)
+
+    with ledger.sigterm_as_interrupt():
+        if address:  # a cluster that does not answer is refused before anything is written
+            ledger.check_sweep_dir_readonly(sweep_dir)
+            ledger.check_address(address, connect_timeout_s)
+        # A cluster is joined before the sweep dir is written; the embedded Ray starts only if a cell is pending.
+        with session() if address else nullcontext():
+            ledger.check_sweep_dir(sweep_dir)
+            with ledger.sweep_lock(sweep_dir):
+                manifest = ledger.check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
+                if store.read_manifest(sweep_dir) is None:
+                    store.write_manifest(sweep_dir, manifest)
+                shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers
+                done, _ = ledger.finished_and_failed(sweep_dir, grid)
+                pending = [s for s in specs if s.cell_id not in done]
+                counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
+                where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
+                stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done), "
+                             f"{where}, results in {sweep_dir}\n")
+                if pending:
+                    callback = SweepCallback(str(sweep_dir), name, grid, counter)
+                    with nullcontext() if address else session():
+                        _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
+                done, failed = ledger.finished_and_failed(sweep_dir, grid)
+                counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
+                counter.finish()
+                return SweepResult(name, sweep_dir, len(specs), len(done), len(failed))

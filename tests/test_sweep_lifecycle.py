@@ -1,0 +1,388 @@
+"""A sweep's life from start to stop leaves nothing behind: a cluster that does not answer is refused
+within --connect-timeout with nothing written; the embedded Ray starts no dashboard unless asked and
+prunes its old session dirs; checkpoints are staged inside the sweep; a deterministic data error is
+recorded once; SIGTERM stops a sweep like Ctrl-C and `resume` finishes it; after a SIGKILL of the
+driver no process of its Ray survives.
+
+The first tests need no running Ray (stand-ins for ray.init and tune.report); the last ones run the
+CLI in subprocesses, each with its own --ray-temp-dir and in its own session, so that everything it
+started can be found (and is killed in teardown) without touching any other Ray on the machine.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from asp_dist import cli
+from asp_dist.data.mnist import MNISTError
+from asp_dist.results import store
+from asp_dist.sweep import ledger
+from asp_dist.sweep.spaces import expand
+
+
+def env(**extra):
+    e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
+    e.update(extra)
+    return e
+
+
+def free_port() -> int:
+    """A loopback port nothing listens on (bound, then closed)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def fingerprint(root: Path) -> dict[str, str | None]:
+    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None)
+            for p in sorted(root.rglob("*"))}
+
+
+def parquet_files(sweep_dir) -> list[Path]:
+    return sorted(Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
+
+
+# ---- a cluster that does not answer -------------------------------------------------------------------------
+REFUSED_WITHOUT_RAY = """import sys, time
+from asp_dist.cli import main
+start = time.monotonic()
+code = main(sys.argv[1:])
+print(code, round(time.monotonic() - start, 2))
+assert 'ray' not in sys.modules, 'ray was imported'
+"""
+
+
+@pytest.mark.parametrize("where", ["loopback-port-nothing-listens-on", "unresolvable-host"])
+def test_a_cluster_that_does_not_answer_is_refused_in_time_and_nothing_is_written(tmp_path, where):
+    address = f"127.0.0.1:{free_port()}" if where.startswith("loopback") else "no-such-host.invalid:6379"
+    results = tmp_path / "results"
+    proc = subprocess.run([sys.executable, "-c", REFUSED_WITHOUT_RAY, "sweep", "smoke", "--results", str(results),
+                           "--address", address, "--connect-timeout", "2"],
+                          env=env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    code, seconds = proc.stdout.split()
+    assert code == "2" and float(seconds) < 10, proc.stdout
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("asp-dist: error: cannot reach the Ray cluster at ") \
+        and address in lines[0], proc.stderr
+    assert not results.exists(), "the results tree was written"
+
+    # resume of an existing sweep: refused the same way, its directory untouched.
+    sweep_dir = results / "exp"
+    sweep_dir.mkdir(parents=True)
+    store.write_manifest(sweep_dir, ledger.new_manifest("exp", "smoke", expand("smoke")))
+    before = fingerprint(results)
+    proc = subprocess.run([sys.executable, "-c", REFUSED_WITHOUT_RAY, "resume", "exp", "--results", str(results),
+                           "--address", address, "--connect-timeout", "2"],
+                          env=env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.split()[0] == "2", proc.stderr[-2000:]
+    assert address in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert fingerprint(results) == before
+
+
+def test_address_and_connect_timeout_flags(tmp_path, capsys):
+    results = ["--results", str(tmp_path / "r")]
+    for argv, needle in ((["--address", "localhost"], "write HOST:PORT"),
+                         (["--address", "h:99999"], "write HOST:PORT"),
+                         (["--connect-timeout", "0"], "--connect-timeout must be > 0"),
+                         (["--connect-timeout", "nan"], "--connect-timeout must be > 0"),
+                         (["--address", "127.0.0.1:6379", "--dashboard"], "--dashboard starts the embedded")):
+        assert cli.main(["sweep", "smoke", *results, *argv]) == 2
+        err = capsys.readouterr().err
+        assert needle in err and len(err.strip().splitlines()) == 1, err
+    assert ledger.parse_address("ray://head.example:10001") == ("head.example", 10001)
+    assert ledger.parse_address("[::1]:6379") == ("::1", 6379)
+    assert ledger.parse_address("auto") is None
+    assert not (tmp_path / "r").exists()
+
+
+def test_dashboard_needs_its_packages(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(cli, "DASHBOARD_MODULES", ("surely_not_installed_asp_module",))
+    assert cli.main(["sweep", "smoke", "--results", str(tmp_path / "r"), "--dashboard"]) == 2
+    assert "--dashboard needs Ray's dashboard packages (surely_not_installed_asp_module" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_head_that_accepts_but_never_answers_is_given_up_on_in_time(tmp_path):
+    """A TCP port that accepts connections but is no Ray head: ray.init would wait for minutes."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(64)
+    server.settimeout(0.5)
+    address = f"127.0.0.1:{server.getsockname()[1]}"
+    accepted, stop = [], threading.Event()
+
+    def accept():
+        while not stop.is_set():
+            try:
+                accepted.append(server.accept()[0])
+            except OSError:
+                pass
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        start = time.monotonic()
+        proc = subprocess.run([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results",
+                               str(tmp_path / "results"), "--address", address, "--connect-timeout", "3"],
+                              env=env(), capture_output=True, text=True, timeout=300, start_new_session=True)
+        elapsed = time.monotonic() - start
+    finally:
+        stop.set()
+        thread.join(5)
+        for conn in accepted:
+            conn.close()
+        server.close()
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert f"asp-dist: error: no answer from the Ray cluster at {address} within 3 s" in proc.stderr
+    assert elapsed < 90, elapsed  # the Ray import, then 3 s (before: minutes)
+    assert not (tmp_path / "results").exists()
+
+
+# ---- the embedded Ray: dashboard, session dirs ---------------------------------------------------------------
+def test_embedded_ray_starts_no_dashboard_unless_asked_and_keeps_the_sweeps_sigterm(monkeypatch, tmp_path):
+    from asp_dist.sweep import tune as sweep_tune
+
+    calls = []
+
+    class Context:
+        dashboard_url = "127.0.0.1:8265"
+
+    def fake_init(**kwargs):
+        calls.append(kwargs)
+        signal.signal(signal.SIGTERM, lambda *a: sys.exit(15))  # what ray.init does
+        return Context()
+
+    monkeypatch.setattr(sweep_tune.ray, "init", fake_init)
+    monkeypatch.setattr(sweep_tune.ray, "shutdown", lambda: None)
+    monkeypatch.setattr(sweep_tune.ray, "is_initialized", lambda: False)
+    pruned = []
+    monkeypatch.setattr(sweep_tune, "prune_ray_sessions", lambda d: pruned.append(d) or [])
+    monkeypatch.setattr(sweep_tune, "_start_reaper", lambda d: None)
+    out = io.StringIO()
+    with ledger.sigterm_as_interrupt():
+        with sweep_tune.ray_session(2, None, str(tmp_path), stream=out):
+            assert signal.getsignal(signal.SIGTERM) is ledger._sigterm, "ray.init's SIGTERM handler was kept"
+        with sweep_tune.ray_session(2, None, str(tmp_path), dashboard=True, stream=out):
+            pass
+    assert calls[0]["include_dashboard"] is False and calls[0]["dashboard_host"] == "127.0.0.1"
+    assert calls[1]["include_dashboard"] is True and calls[1]["dashboard_host"] == "127.0.0.1"
+    assert out.getvalue() == "Ray dashboard: http://127.0.0.1:8265\n"
+    assert pruned == [str(tmp_path)] * 2
+    parser = cli.build_parser()
+    for command in (["sweep", "smoke"], ["resume", "x"]):
+        assert parser.parse_args(command).dashboard is False
+        assert parser.parse_args([*command, "--dashboard"]).dashboard is True
+
+
+def test_old_ray_sessions_are_pruned_but_never_one_in_use(tmp_path):
+    from asp_dist.sweep.tune import prune_ray_sessions
+
+    dead = 99_999_999  # above any pid_max: no such process
+    names = [f"session_2020-01-0{day}_00-00-00_000000_{dead}" for day in range(1, 10)]
+    names[5] = f"session_2020-01-06_00-00-00_000000_{os.getpid()}"  # its driver is alive
+    old = time.time() - 3600
+    for name in names:
+        (tmp_path / name / "logs").mkdir(parents=True)
+        (tmp_path / name / "logs" / "raylet.out").write_text("x")
+        for p in (tmp_path / name / "logs" / "raylet.out", tmp_path / name / "logs", tmp_path / name):
+            os.utime(p, (old, old))
+    os.utime(tmp_path / names[3])  # young: a Ray that may be starting
+    (tmp_path / "session_latest").symlink_to(tmp_path / names[2])
+    (tmp_path / "other").mkdir()
+    user = subprocess.Popen(["sleep", "60"], cwd=tmp_path / names[4] / "logs")  # a process works in it
+    try:
+        removed = prune_ray_sessions(tmp_path, keep=3, min_age_s=300)
+    finally:
+        user.kill()
+        user.wait()
+    assert sorted(p.name for p in removed) == names[:2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[2:] + ["other", "session_latest"])
+    assert prune_ray_sessions(tmp_path / "missing") == []
+
+
+# ---- the trainable: checkpoints inside the sweep, deterministic data errors --------------------------------
+@pytest.fixture
+def trainable(monkeypatch, tmp_path):
+    """train_cell outside Ray: tune.report records its calls (and what a checkpoint dir holds then)."""
+    from asp_dist.sweep import tune as sweep_tune
+
+    reports = []
+
+    def report(metrics, checkpoint=None):
+        seen = None
+        if checkpoint is not None:
+            seen = (Path(checkpoint.path), sorted(p.name for p in Path(checkpoint.path).iterdir()))
+        reports.append((metrics, seen))
+
+    class RuntimeContext:
+        def get_node_id(self):
+            return "node-0"
+
+    monkeypatch.setattr(sweep_tune.tune, "report", report)
+    monkeypatch.setattr(sweep_tune.tune, "get_checkpoint", lambda: None)
+    monkeypatch.setattr(sweep_tune.ray, "get_runtime_context", RuntimeContext)
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
+    spec = expand("smoke")[0]
+    sweep_dir = tmp_path / "smoke"
+    config = {"cell": {"spec": spec.to_dict(), "cell_id": spec.cell_id, "sweep_dir": str(sweep_dir),
+                       "sweep_id": "smoke", "checkpoint_every_s": 1e-9}}
+    return sweep_tune, config, spec, sweep_dir, system_tmp, reports
+
+
+def test_checkpoints_are_staged_inside_the_sweep_and_removed_after_the_copy(trainable):
+    sweep_tune, config, spec, sweep_dir, system_tmp, reports = trainable
+    sweep_tune.train_cell(config)
+    saved = [seen for _, seen in reports if seen is not None]
+    assert saved, "no checkpoint was reported"
+    staging = sweep_dir / sweep_tune.TUNE_DIR / sweep_tune.CKPT_TMP
+    for path, files in saved:
+        assert path.parent == staging and path.name.startswith(spec.cell_id), path
+        assert files == ["state.pt"]  # complete: written under a temp name, then renamed
+    assert staging.is_dir() and not any(staging.iterdir()), "a staged checkpoint was left behind"
+    # (torch may create its empty torchinductor_<user> cache dir there; no file is written)
+    assert not [p for p in system_tmp.rglob("*") if p.is_file()], "a file was written to the system temp dir"
+    assert reports[-1][0]["cell_done"] == 1 and store.is_done(sweep_dir, spec.domain, spec.method, spec.cell_id)
+
+
+def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeypatch):
+    sweep_tune, config, spec, sweep_dir, _, reports = trainable
+
+    def unreadable(*args, **kwargs):
+        raise MNISTError("MNIST file /data/train-images.gz is unreadable (planted by the test)")
+
+    monkeypatch.setattr(sweep_tune, "run_cell", unreadable)
+    sweep_tune.train_cell(config)  # returns: Tune sees a finished trial, not an error to retry
+    assert reports == [({"cell_done": 0, "cell_failed": 1}, None)]
+    failed = store.failed_cells(sweep_dir)
+    assert list(failed) == [spec.cell_id]
+    assert "MNISTError: MNIST file /data/train-images.gz is unreadable" in failed[spec.cell_id]["error"]
+
+
+# ---- stopping a running sweep --------------------------------------------------------------------------------
+def session_processes(sid: int, ray_temp: str) -> dict[int, str]:
+    """Processes started by the driver (its session: start_new_session) or naming this test's Ray temp dir."""
+    found = {}
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if os.getsid(int(proc.name)) == sid or ray_temp in cmdline:
+                found[int(proc.name)] = cmdline[:100]
+        except OSError:
+            continue
+    return found
+
+
+def wait_until_gone(sid: int, ray_temp: str, seconds: float) -> dict[int, str]:
+    deadline = time.monotonic() + seconds
+    while (left := session_processes(sid, ray_temp)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return left
+
+
+def kill_all(sid: int, ray_temp: str) -> None:
+    for pid in session_processes(sid, ray_temp):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def start_smoke(tmp_path, ray_temp, *extra):
+    err = open(tmp_path / "driver.err", "w")  # a file: a full pipe would block the driver
+    driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results",
+                               str(tmp_path / "results"), "--ray-temp-dir", ray_temp, *extra],
+                              env=env(), start_new_session=True, stdout=subprocess.DEVNULL, stderr=err)
+    err.close()
+    return driver
+
+
+def wait_for_first_row(driver, sweep_dir, seconds=300):
+    deadline = time.monotonic() + seconds
+    while not parquet_files(sweep_dir) and time.monotonic() < deadline and driver.poll() is None:
+        time.sleep(0.1)
+    assert driver.poll() is None, "the sweep ended before it could be stopped"
+    assert parquet_files(sweep_dir), "no cell finished in time"
+
+
+@pytest.mark.slow
+def test_sigterm_stops_a_running_sweep_promptly_and_resume_finishes_it(tmp_path):
+    ray_temp = f"/tmp/asp-lt-{os.getpid()}"  # short: Ray's socket paths live under it
+    sweep_dir = tmp_path / "results" / "smoke"
+    driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.05")
+    try:
+        wait_for_first_row(driver, sweep_dir)
+        driver.send_signal(signal.SIGTERM)
+        stopped = time.monotonic()
+        try:
+            code = driver.wait(30)
+        except subprocess.TimeoutExpired:
+            pytest.fail("the sweep did not stop within 30 s of SIGTERM")
+        err = (tmp_path / "driver.err").read_text()
+        assert code == 128 + signal.SIGTERM, err[-3000:]
+        assert "asp-dist: interrupted (SIGTERM); finished cells are kept: asp-dist resume smoke" in err
+        left = wait_until_gone(driver.pid, ray_temp, 10)
+        assert not left, f"left running {time.monotonic() - stopped:.0f} s after SIGTERM: {left}"
+    finally:
+        kill_all(driver.pid, ray_temp)
+    first = {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)}
+    assert 1 <= len(first) < 18
+    assert "not running" in ledger.sweep_status("smoke", tmp_path / "results")
+
+    resumed = subprocess.run([sys.executable, "-m", "asp_dist.cli", "resume", "smoke", "--results",
+                              str(tmp_path / "results"), "--ray-temp-dir", ray_temp, "--checkpoint-every", "0.05"],
+                             env=env(), capture_output=True, text=True, timeout=420, start_new_session=True)
+    try:
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert "18/18 cells done, 0 failed" in resumed.stdout
+    finally:
+        import shutil
+
+        shutil.rmtree(ray_temp, ignore_errors=True)
+    files = parquet_files(sweep_dir)
+    df = store.read_rows(sweep_dir)
+    assert len(files) == 18 and len(df) == 18 and df["cell_id"].is_unique  # every cell exactly once
+    assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")}
+    assert all(f.stat().st_mtime_ns == m for f, m in first.items()), "a finished cell was written again"
+    assert not store.failed_cells(sweep_dir)
+    assert list((sweep_dir / "tune").glob("run-*/*/checkpoint_*")), "no checkpoint was taken"
+    staging = sweep_dir / "tune" / ".ckpt-tmp"
+    assert not staging.exists() or not any(staging.iterdir()), "staged checkpoints were left behind"
+
+
+@pytest.mark.slow
+def test_after_a_sigkill_of_the_driver_no_process_of_its_ray_survives(tmp_path):
+    ray_temp = f"/tmp/asp-lk-{os.getpid()}"
+    sweep_dir = tmp_path / "results" / "smoke"
+    driver = start_smoke(tmp_path, ray_temp)
+    try:
+        wait_for_first_row(driver, sweep_dir)
+        running = session_processes(driver.pid, ray_temp)
+        assert any("raylet" in c for c in running.values()), running
+        driver.send_signal(signal.SIGKILL)
+        driver.wait(30)
+        killed = time.monotonic()
+        # Before: the raylet's agents lived on for a minute after the driver, trying to reach the dead GCS.
+        left = wait_until_gone(driver.pid, ray_temp, 10)
+        assert not left, f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}"
+    finally:
+        kill_all(driver.pid, ray_temp)
+        import shutil
+
+        shutil.rmtree(ray_temp, ignore_errors=True)
