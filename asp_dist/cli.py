@@ -31,6 +31,8 @@ class Parser(argparse.ArgumentParser):
 
 
 # ---- cell, theory, fields -----------------------------------------------------------------------
+RAY_SOCKET_SUFFIX = 64  # len('/session_YYYY-MM-DD_HH-MM-SS_uuuuuu_<pid:7>/sockets/plasma_store')
+
 def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in items:
@@ -211,6 +213,12 @@ def check_run_flags(args: argparse.Namespace) -> None:
             raise SpecError("--ray-temp-dir is empty; name a directory or leave it out")
         if temp.exists() and not temp.is_dir():
             raise SpecError(f"--ray-temp-dir {temp} exists and is not a directory")
+        # Ray puts Unix sockets at <dir>/session_<date>_<time>_<usec>_<pid>/sockets/plasma_store (64 more
+        # characters at most), and a socket path may have 107 bytes: say so now, not in a traceback later.
+        longest = len(os.fsencode(os.path.abspath(temp))) + RAY_SOCKET_SUFFIX
+        if longest > 107:
+            raise SpecError(f"--ray-temp-dir {temp} is too long for Ray's socket paths ({longest} > 107 bytes); "
+                            f"use a directory of at most {107 - RAY_SOCKET_SUFFIX} characters, e.g. /tmp/asp-ray")
 
 
 def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -356,10 +364,25 @@ def _check_domain(domain: str, flag: str, item: str) -> None:
         raise SpecError(f"{flag} {item!r}: unknown domain {domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
 
 
+def check_stats_out(out: str) -> Path:
+    """Refuse a stats --out that lies inside a sweep's tree or is a file, before any work is done."""
+    from asp_dist.results.query import sweep_containing
+
+    path = Path(out).expanduser()
+    inside = sweep_containing(path)
+    if inside is not None:
+        raise SpecError(f"--out {out} lies inside the sweep {inside}; write the stats to the sweep directory "
+                        f"itself (the default) or outside it")
+    if path.exists() and not path.is_dir():
+        raise SpecError(f"cannot create the output directory {out}: a file of that name exists")
+    return path
+
+
 def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
-    """--out, or the one sweep (or directory) given; the stats job never guesses among several inputs."""
+    """--out, or the one sweep (or directory) given; the stats job never guesses among several inputs.
+    A sweep's own directory may hold its stats (the default); a folder inside its tree may not."""
     if out:
-        path = Path(out)
+        path = check_stats_out(out)
     elif len(inputs) == 1 and inputs[0].is_dir():
         path = inputs[0]
     else:
@@ -410,6 +433,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
     if not args.metric.strip():
         raise SpecError("--metric is empty; name a metric column such as eval_mixed")
     paired_ranges, thresholds = parse_ranges(args.paired_range), parse_thresholds(args.threshold)
+    if args.out is not None:
+        check_stats_out(args.out)
     check_metric(args.sweeps, args.results, args.metric)
     cfg = StatsConfig(metric=args.metric, paired_ranges=paired_ranges, thresholds=thresholds, alpha=args.alpha,
                       n_boot=args.bootstrap, seed=args.seed)

@@ -230,6 +230,8 @@ case("sweep-ckpt-nan", [*S, "--checkpoint-every", "nan"], "--checkpoint-every mu
 case("sweep-ckpt-inf", [*S, "--checkpoint-every", "inf"], "--checkpoint-every must be > 0")
 case("sweep-workers-text", [*S, "--workers", "two"], "invalid int value: 'two'")
 case("sweep-ray-temp-file", [*S, "--name", "new", "--ray-temp-dir", "{scratch}/afile"], "is not a directory")
+case("sweep-ray-temp-too-long", [*S, "--name", "new", "--ray-temp-dir", "/tmp/" + "x" * 60],
+     "too long for Ray's socket paths")
 case("sweep-address-empty", [*S, "--name", "new", "--address", ""], "--address is empty")
 case("sweep-unknown-space", ["sweep", "no-such-space", *R], "unknown space 'no-such-space'")
 case("sweep-missing-file", ["sweep", "{spaces}/missing.toml", *R], "does not exist")
@@ -346,6 +348,8 @@ for flags, needle in ((["--alpha", "0"], "--alpha must be between 0 and 1"),
                       (["--bootstrap", "many"], "invalid int value")):
     case(f"stats-{flags[0]}={flags[1]}", [*ST, *flags], needle)
 case("stats-ghost", ["stats", "ghost", *R, "--no-figures"], "does not exist")
+case("stats-out-inside-cells", [*ST, "--out", "{results}/tiny/cells/stats"], "lies inside the sweep")
+case("stats-out-is-a-file", [*ST, "--out", "{scratch}/existing.csv"], "cannot create the output directory")
 case("stats-not-parquet", ["stats", "{scratch}/existing.csv", "--out", "{root}/out"], "is not a .parquet file")
 
 # select
