@@ -268,6 +268,13 @@ def read_table(sweep_dir: str | Path, strict: bool = False) -> pa.Table:
     return ds.dataset(files, schema=schema(), format="parquet").to_table()
 
 
+def _plain_partitions(df: pd.DataFrame) -> pd.DataFrame:
+    """domain and method as plain strings (they are stored dictionary-encoded)."""
+    for col in PARTITION_COLUMNS:
+        df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
+    return df
+
+
 def read_curves(sweep_dir: str | Path) -> pd.DataFrame:
     """Every learning-curve point of a sweep (one row per cell and step), by cell id and step."""
     import pyarrow.dataset as ds
@@ -276,14 +283,10 @@ def read_curves(sweep_dir: str | Path) -> pd.DataFrame:
     table = ds.dataset(files, schema=curve_schema(), format="parquet").to_table() if files else \
         curve_schema().empty_table()
     df = table.to_pandas()
-    for col in PARTITION_COLUMNS:
-        df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
-    return df.sort_values(["cell_id", "step"], kind="stable").reset_index(drop=True)
+    return _plain_partitions(df).sort_values(["cell_id", "step"], kind="stable").reset_index(drop=True)
 
 
 def read_rows(sweep_dir: str | Path, strict: bool = False) -> pd.DataFrame:
     """All finished rows of a sweep as a DataFrame (domain and method as plain strings), by cell id."""
     df = read_table(sweep_dir, strict).to_pandas()
-    for col in PARTITION_COLUMNS:
-        df[col] = df[col].astype(str) if len(df) else df[col].astype(object)
-    return df.sort_values("cell_id", kind="stable").reset_index(drop=True)
+    return _plain_partitions(df).sort_values("cell_id", kind="stable").reset_index(drop=True)
