@@ -304,6 +304,63 @@ def kill_all(sid: int, ray_temp: str) -> None:
             pass
 
 
+FAKE_DRIVER = """
+import subprocess, sys, time
+from asp_dist.sweep import tune
+temp_dir = sys.argv[1]
+reaper = tune._start_reaper(temp_dir)
+# A node process (its command line names the temp dir) whose child renames nothing and names nothing:
+# only the family tree says it is ours, as for Ray's agents after setproctitle.
+node = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time; "
+                         "c = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)']); "
+                         "print(c.pid, flush=True); time.sleep(600)", temp_dir], stdout=subprocess.PIPE, text=True)
+print(node.pid, node.stdout.readline().strip(), flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_reaper_kills_the_whole_family_of_a_killed_driver_and_nothing_else(tmp_path):
+    temp_dir = str(tmp_path / "ray")
+    bystander = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    driver = subprocess.Popen([sys.executable, "-c", FAKE_DRIVER, temp_dir], stdout=subprocess.PIPE, text=True,
+                              env=env(), start_new_session=True)
+    family = []
+    try:
+        family = [int(p) for p in driver.stdout.readline().split()]
+        assert len(family) == 2, "the fake driver did not start its node process"
+        log = Path(temp_dir, f"reaper-{driver.pid}.log")
+        deadline = time.monotonic() + 30
+        while "node process" not in (log.read_text() if log.exists() else "") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.2)  # two more scans: the grandchild joins the tree
+        driver.kill()
+        driver.wait(10)
+        deadline = time.monotonic() + 10
+        while any(Path(f"/proc/{p}").exists() and b"zombie" not in _state(p) for p in family) \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+        alive = [p for p in family if Path(f"/proc/{p}").exists() and b"zombie" not in _state(p)]
+        assert not alive, f"the reaper left {alive} running; its log: {log.read_text()}"
+        assert bystander.poll() is None, "the reaper killed a process that was not the driver's"
+        assert "killed" in log.read_text()
+    finally:
+        for pid in family:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        driver.kill()
+        bystander.kill()
+        bystander.wait()
+
+
+def _state(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/status").read_bytes()
+    except OSError:
+        return b"zombie"
+
+
 def start_smoke(tmp_path, ray_temp, *extra):
     err = open(tmp_path / "driver.err", "w")  # a file: a full pipe would block the driver
     driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results",
@@ -380,7 +437,9 @@ def test_after_a_sigkill_of_the_driver_no_process_of_its_ray_survives(tmp_path):
         killed = time.monotonic()
         # Before: the raylet's agents lived on for a minute after the driver, trying to reach the dead GCS.
         left = wait_until_gone(driver.pid, ray_temp, 10)
-        assert not left, f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}"
+        reaper_log = Path(ray_temp, f"reaper-{driver.pid}.log")
+        assert not left, (f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}; "
+                          f"the reaper's log: {reaper_log.read_text() if reaper_log.exists() else 'none'}")
     finally:
         kill_all(driver.pid, ray_temp)
         import shutil

@@ -221,6 +221,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                 temp_dir = os.path.abspath(os.path.expanduser(temp_dir or default_ray_temp_dir()))
                 for pruned in prune_ray_sessions(temp_dir):
                     log.info("pruned old Ray session %s", pruned)
+                prune_reaper_logs(temp_dir)
                 reaper = _start_reaper(temp_dir)
                 os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # local-only default: nothing listens outside
                 context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir,
@@ -296,12 +297,19 @@ def _connect_deadline(address: str, timeout_s: float) -> Iterator[None]:
 # raylet's agents spend a minute trying to tell the dead GCS about it, and workers may take a few
 # seconds. The reaper is a tiny process (no Ray, no torch) that waits for the driver to close a pipe --
 # at the end of ray_session or when it dies, however -- and then kills what remains of the embedded
-# Ray: the node processes it saw the driver start (children whose command line names the temp dir),
-# and every process of that raylet (RAY_RAYLET_PID in its environment: agents, workers).
+# Ray. While it waits it keeps a family tree: the node processes the driver starts (children whose
+# command line names the temp dir) and every descendant of those, by (pid, start time) so that a reused
+# pid is never mistaken for ours. It scans /proc twice a second while Ray starts, then every 2 s (a
+# few ms each). At the end it also kills every process of the raylet it saw (RAY_RAYLET_PID in its
+# environment), which catches a worker born after the last scan, and repeats until a scan finds none.
+# It writes what it did to reaper-<driver pid>.log in the temp dir, for whoever wonders what survived.
 REAPER = r"""
 import os, select, signal, sys, time
 signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle; this cleans up after it
 driver, temp_dir = int(sys.argv[1]), os.fsencode(sys.argv[2])
+os.makedirs(sys.argv[2], exist_ok=True)
+log = open(os.path.join(sys.argv[2], "reaper-%d.log" % driver), "a", buffering=1)
+started = time.monotonic()
 
 def stat(pid):  # (command name, parent pid, start time) or None
     try:
@@ -319,34 +327,61 @@ def read(pid, name):
     except OSError:
         return []
 
-def pids():
-    return [int(p) for p in os.listdir("/proc") if p.isdigit() and int(p) not in (driver, os.getpid())]
+def snapshot():
+    found = {}
+    for p in os.listdir("/proc"):
+        if p.isdigit() and int(p) not in (driver, os.getpid()):
+            st = stat(int(p))
+            if st:
+                found[int(p)] = st
+    return found
 
-tracked, raylet, scan_until = {}, None, None
+tracked, raylet = {}, None  # pid -> start time; (pid, start time) of the raylet
+
+def scan():
+    global raylet
+    procs = snapshot()
+    for pid, (name, ppid, start) in procs.items():
+        if pid not in tracked and ppid == driver and any(temp_dir in a for a in read(pid, "cmdline")):
+            tracked[pid] = start
+            log.write("%.1f s: node process %d %s\n" % (time.monotonic() - started, pid, name.decode(errors="replace")))
+            if name == b"raylet" and raylet is None:
+                raylet = (pid, start)
+    grew = True
+    while grew:  # descendants of what we track (children appear after their parents in no fixed order)
+        grew = False
+        for pid, (name, ppid, start) in procs.items():
+            if pid not in tracked and tracked.get(ppid, start + 1) <= start:
+                tracked[pid] = start
+                grew = True
+    for pid in [p for p, s in tracked.items() if procs.get(p, (0, 0, None))[2] != s]:
+        del tracked[pid]  # gone (or its pid reused): forget it
+
 while True:
-    scanning = scan_until is None or time.monotonic() < scan_until
-    if select.select([0], [], [], 0.5 if scanning else None)[0] and not os.read(0, 4096):
+    fast = raylet is None or time.monotonic() - started < 30
+    if select.select([0], [], [], 0.5 if fast else 2.0)[0] and not os.read(0, 4096):
         break  # EOF: the driver closed the pipe or died
-    if scanning:
-        for pid in pids():
-            st = stat(pid)
-            if st and st[1] == driver and pid not in tracked and any(temp_dir in a for a in read(pid, "cmdline")):
-                tracked[pid] = st[2]
-                if st[0] == b"raylet" and raylet is None:
-                    raylet, scan_until = (pid, st[2]), time.monotonic() + 10
-for attempt in range(3):
-    for pid in pids():
-        st = stat(pid)
-        if st is None:
-            continue
-        ours = tracked.get(pid) == st[2] or (
-            raylet is not None and st[2] >= raylet[1] and b"RAY_RAYLET_PID=%d" % raylet[0] in read(pid, "environ"))
+    scan()
+log.write("%.1f s: the driver is done; raylet %s, tracking %d\n" % (time.monotonic() - started, raylet, len(tracked)))
+quiet = 0
+for attempt in range(20):  # until two scans in a row find nothing of ours (at most ~6 s)
+    killed = []
+    for pid, (name, ppid, start) in snapshot().items():
+        ours = tracked.get(pid) == start or (
+            raylet is not None and start >= raylet[1] and b"RAY_RAYLET_PID=%d" % raylet[0] in read(pid, "environ"))
         if ours:
             try:
                 os.kill(pid, signal.SIGKILL)
+                killed.append("%d %s" % (pid, name.decode(errors="replace")))
             except OSError:
                 pass
+    if killed:
+        log.write("%.1f s: killed %s\n" % (time.monotonic() - started, ", ".join(killed)))
+    quiet = 0 if killed else quiet + 1
+    if quiet == 2:
+        break
     time.sleep(0.3)
+log.write("%.1f s: done\n" % (time.monotonic() - started))
 """
 
 
@@ -440,6 +475,15 @@ def prune_ray_sessions(temp_dir: str | Path, keep: int = RAY_SESSIONS_KEPT,
         if not session.exists():
             removed.append(session)
     return removed
+
+
+def prune_reaper_logs(temp_dir: str | Path, keep: int = RAY_SESSIONS_KEPT) -> None:
+    """Keep the reaper logs of the newest ``keep`` drivers (and of any driver still alive)."""
+    logs = sorted(Path(temp_dir).glob("reaper-*.log"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in logs[keep:]:
+        driver = old.stem.removeprefix("reaper-")
+        if not (driver.isdigit() and Path(f"/proc/{driver}").exists()):
+            old.unlink(missing_ok=True)
 
 
 def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
