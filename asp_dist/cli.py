@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 from asp_dist.errors import SpecError
 from asp_dist.results import store
+from asp_dist.results.location import as_path, is_remote
 from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec, coerce_field
 
 
@@ -245,7 +246,7 @@ def _interruptible(args: argparse.Namespace, name_of, run) -> int:
             name = name_of()
             hint = ""
             try:
-                if name is not None and store.read_manifest(Path(args.results) / name) is not None:
+                if name is not None and store.read_manifest(as_path(args.results) / name) is not None:
                     hint = f"; finished cells are kept: asp-dist resume {name} --results {args.results}"
             except (OSError, SpecError):
                 pass
@@ -260,8 +261,9 @@ def _finish(result) -> int:
     print(f"  stats, figures and report: asp-dist stats {result.sweep_dir}")
     print(f"  query: asp-dist query {result.sweep_dir} --where \"method = 'asp'\" --columns paired,trial,eval_mixed")
     print(f"  read: python -c \"from asp_dist.results.store import read_rows; print(read_rows('{result.sweep_dir}'))\"")
-    print(f"   or: duckdb -c \"select method, paired, median(eval_mixed) from read_parquet('{cells}/**/*.parquet') "
-          f"group by all order by all\"")
+    if not is_remote(result.sweep_dir):  # DuckDB would need its own S3 settings (httpfs) for a bucket
+        print(f"   or: duckdb -c \"select method, paired, median(eval_mixed) from read_parquet('{cells}/**/*.parquet') "
+              f"group by all order by all\"")
     if result.failed:
         print(f"  failed cells: asp-dist status {result.name} --results {result.sweep_dir.parent}", file=sys.stderr)
     return 0 if result.failed == 0 and result.done == result.total else 1
@@ -398,13 +400,32 @@ def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
 
 def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None, figures: bool = True,
                   results: str | Path = store.DEFAULT_RESULTS, command: str = "", log=print) -> Path:
-    """The whole stats job: read rows, compute tables, write stats/, figures/ and report.md. Returns report.md."""
-    from asp_dist.analysis import plot_all, run_stats, write_report, write_tables
+    """The whole stats job: read rows, compute tables, write stats/, figures/ and report.md. Returns report.md.
+    For a single sweep on S3 (and no --out) they go beside it in the bucket."""
     from asp_dist.results.query import find_inputs
 
     find_inputs(sweeps, results)  # a missing or empty input is the first thing to report
     located = [store.locate_sweep(s, results) for s in sweeps]
-    out_dir = stats_output_dir(located, out)
+    scratch = upload_to = None
+    if not out and len(located) == 1 and is_remote(located[0]):
+        # A sweep on S3 keeps its stats beside it in the bucket: written to scratch, then uploaded.
+        import tempfile
+
+        scratch = tempfile.TemporaryDirectory(prefix="asp-stats-")
+        upload_to, out_dir = located[0], Path(scratch.name)
+    else:
+        out_dir = stats_output_dir(located, out)
+    try:
+        return _stats_job(located, out_dir, upload_to, cfg, figures, command, log)
+    finally:
+        if scratch is not None:
+            scratch.cleanup()
+
+
+def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: str, log) -> Path:
+    from asp_dist.analysis import plot_all, run_stats, write_report, write_tables
+    from asp_dist.results.location import upload_tree
+
     start = time.perf_counter()
     result = run_stats(located, cfg)
     log(f"read and analysed {len(result.rows)} rows from {len(result.inputs.files)} files "
@@ -415,6 +436,10 @@ def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None
     if figures:
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
     report = write_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command)
+    if upload_to is not None:
+        written = upload_tree(out_dir, upload_to)
+        log(f"uploaded {len(written)} files (stats/, figures/, report.md) to {upload_to}")
+        report = upload_to / report.relative_to(out_dir).as_posix()
     for note in result.notes + notes:
         log(f"note: {note}")
     log(f"report: {report} ({time.perf_counter() - start:.1f} s in all)")

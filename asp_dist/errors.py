@@ -17,3 +17,9 @@ class SweepError(SpecError):
 
 class SchemaError(SpecError):
     """Result rows whose columns do not match the pinned row schema (asp_dist.training.row)."""
+
+
+class StorageError(SweepError):
+    """Object storage that cannot be used as asked: an endpoint that does not answer, refused
+    credentials, a missing bucket (asp_dist.results.location). One line, exit 2, like any SweepError;
+    inside a running cell it is a crash (retried), never a deterministic failure of the cell."""

@@ -8,23 +8,23 @@ listed by id, with the domain and method its failure record names, if any.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
 from asp_dist.analysis.layout import DomainLayout, by_condition, treatment_order
 from asp_dist.results import store
+from asp_dist.results.location import AnyPath, as_path
 from asp_dist.results.query import Inputs
 
 MISSING_COLUMNS = ["sweep", "kind", "domain", "condition", "method", "paired", "trial", "cell_id", "error"]
 DESCRIBED = ("domain", "method", "paired", "trial")
 
 
-def planned_cells(sweep_dir: Path) -> tuple[dict[str, dict[str, Any] | None] | None, list[str]]:
+def planned_cells(sweep_dir: AnyPath) -> tuple[dict[str, dict[str, Any] | None] | None, list[str]]:
     """(cell_id -> resolved spec dict, in grid order, or None for the whole when the sweep has no
     usable manifest; notes). A manifest from before the specs were stored maps every id to None."""
-    name = Path(sweep_dir).name
+    name = as_path(sweep_dir).name
     try:
         manifest = store.read_manifest(sweep_dir)
     except (OSError, ValueError) as err:  # the store's SchemaError is a ValueError too
@@ -41,12 +41,12 @@ def planned_cells(sweep_dir: Path) -> tuple[dict[str, dict[str, Any] | None] | N
     return planned, []
 
 
-def failure_records(sweep_dir: Path) -> tuple[dict[str, dict[str, Any]], list[str]]:
+def failure_records(sweep_dir: AnyPath) -> tuple[dict[str, dict[str, Any]], list[str]]:
     """cell_id -> the store's failure record, and notes (unreadable records are a note, not a crash)."""
     try:
         return store.failed_cells(sweep_dir), []
     except (OSError, ValueError) as err:
-        return {}, [f"{Path(sweep_dir).name}: the failure records under failed/ cannot be read ({err}); "
+        return {}, [f"{as_path(sweep_dir).name}: the failure records under failed/ cannot be read ({err}); "
                     "failed cells are listed as not finished"]
 
 
@@ -62,9 +62,9 @@ def describe_cell(spec: dict[str, Any] | None, failure: dict[str, Any] | None,
     return out
 
 
-def missing_cells(sweep_dir: Path, layouts: dict[str, DomainLayout]) -> tuple[list[dict], list[str], bool]:
+def missing_cells(sweep_dir: AnyPath, layouts: dict[str, DomainLayout]) -> tuple[list[dict], list[str], bool]:
     """(missing cells of one sweep, notes, whether its planned grid is known)."""
-    name = Path(sweep_dir).name
+    name = as_path(sweep_dir).name
     planned, notes = planned_cells(sweep_dir)
     failed, more = failure_records(sweep_dir)
     notes += more

@@ -37,6 +37,7 @@ from asp_dist.analysis.paper import knob_label, metric_label  # noqa: E402
 from asp_dist.analysis.rank_tests import bootstrap_median_ci, group_seed  # noqa: E402
 from asp_dist.errors import SchemaError  # noqa: E402
 from asp_dist.results import store  # noqa: E402
+from asp_dist.results.location import as_path  # noqa: E402
 
 METHOD_COLORS = {"pc": "#7f7f7f", "osp": "#1f77b4", "asp": "#d62728"}
 MAX_PANELS = 8
@@ -388,8 +389,8 @@ def load_curves(result: StatsResult) -> tuple[pd.DataFrame | None, list[str]]:
     """The learning curves of the input sweep directories that have a curves/ folder, or None.
 
     Merged .parquet inputs and plain directories have no curves; that is not an error."""
-    dirs = [Path(d) for d in (result.inputs.sweep_dirs if result.inputs is not None else [])
-            if (Path(d) / store.CURVES_DIR).is_dir()]
+    dirs = [as_path(d) for d in (result.inputs.sweep_dirs if result.inputs is not None else [])
+            if (as_path(d) / store.CURVES_DIR).is_dir()]
     frames, notes = [], []
     for d in dirs:
         try:

@@ -26,6 +26,7 @@ import pyarrow.parquet as pq
 
 from asp_dist.errors import SchemaError, SpecError
 from asp_dist.results import store
+from asp_dist.results.location import AnyPath, S3Path, parquet_dataset, read_parquet_schema
 
 KEY_COLUMNS = ("domain", "method", "paired", "trial")
 DEFAULT_ORDER = ("domain", "method", "paired", "trial")
@@ -37,16 +38,16 @@ STATS_DIR = "stats"  # the stats job's output tables inside a sweep or --out dir
 class Inputs:
     """The Parquet files behind one or more inputs, and the sweep directories among the inputs."""
 
-    files: list[Path]
-    sweep_dirs: list[Path] = field(default_factory=list)
+    files: list[AnyPath]  # local Paths or S3Paths (asp_dist.results.location)
+    sweep_dirs: list[AnyPath] = field(default_factory=list)
     schema: pa.Schema | None = None
 
     def dataset(self) -> ds.Dataset:
         """A pyarrow dataset over exactly these files, read with the unified schema."""
-        return ds.dataset([str(f) for f in self.files], schema=self.schema, format="parquet")
+        return parquet_dataset(self.files, schema=self.schema)
 
 
-def _loose_files(path: Path) -> list[Path]:
+def _loose_files(path: AnyPath) -> list[AnyPath]:
     """Parquet files of a directory that is not a sweep (its top-level stats/ folder left out)."""
     return sorted(f for f in path.rglob("*.parquet")
                   if f.is_file() and store.visible(f, path) and f.relative_to(path).parts[0] != STATS_DIR)
@@ -60,13 +61,14 @@ def find_inputs(paths: Sequence[str | Path], results: str | Path = store.DEFAULT
     `strict` refused."""
     if not paths:
         raise SpecError("no input given: pass a sweep name or directory, a directory or .parquet files")
-    files: list[Path] = []
-    sweeps: list[Path] = []
+    files: list[AnyPath] = []
+    sweeps: list[AnyPath] = []
     for raw in paths:
         path = store.locate_sweep(raw, results)
         if not path.exists():
+            where = "an S3 prefix" if isinstance(path, S3Path) else "a sweep directory"
             raise SpecError(f"{path} does not exist; pass a sweep name (under --results {results}), "
-                            f"a sweep directory or .parquet files")
+                            f"{where} or .parquet files")
         if path.is_file():
             if path.suffix != ".parquet":
                 raise SpecError(f"{path} is not a .parquet file")
@@ -103,16 +105,16 @@ def _kind(t: pa.DataType) -> str:
 _CANONICAL = {"bool": pa.bool_(), "int": pa.int64(), "float": pa.float64(), "string": pa.string(), "null": pa.null()}
 
 
-def unified_schema(files: Sequence[Path]) -> pa.Schema:
+def unified_schema(files: Sequence[AnyPath]) -> pa.Schema:
     """One schema for all files, or SchemaError naming the first column that cannot be unified.
 
     Null-typed columns (all values missing in a file) take the other files' type; integers
     and floats widen to float; every other disagreement is refused."""
-    kinds: dict[str, tuple[str, Path]] = {}
+    kinds: dict[str, tuple[str, AnyPath]] = {}
     order: list[str] = []
     for f in files:
         try:
-            schema = pq.read_schema(f)
+            schema = read_parquet_schema(f)
         except (pa.ArrowException, OSError) as err:
             raise SchemaError(f"cannot read {f}: {err}") from None
         missing = [k for k in KEY_COLUMNS if k not in schema.names]

@@ -25,6 +25,11 @@ refused with SchemaError).
 
 Everything that knows this layout is here; the sweep ledger, ``asp-dist query`` and the stats
 job ask this module. No Ray import: results are read without starting Ray.
+
+A sweep lives in a local directory (a ``Path``: every local code path is unchanged) or under an
+S3 prefix (``s3://bucket/prefix/<sweep>``, an ``asp_dist.results.location.S3Path`` with the same
+pathlib API). On S3 a cell's file is one conditional PUT (``If-None-Match: *``): created once,
+atomically, never overwritten; a failure record or the manifest is one whole-object PUT.
 """
 
 from __future__ import annotations
@@ -38,7 +43,16 @@ from typing import TYPE_CHECKING, Any
 import pyarrow as pa
 
 from asp_dist.errors import SchemaError
-from asp_dist.fsutil import atomic_write, write_table_once
+from asp_dist.results.location import (
+    AnyPath,
+    S3Path,
+    as_path,
+    check_bucket,
+    parquet_dataset,
+    parquet_file,
+    write_replace,
+    write_table_once,
+)
 from asp_dist.training.row import PARTITION_COLUMNS, curve_schema, curve_table, row_table, schema
 
 if TYPE_CHECKING:
@@ -53,30 +67,44 @@ DEFAULT_RESULTS = "results"
 
 
 # ---- layout ------------------------------------------------------------------------------------
-def cells_dir(sweep_dir: str | Path) -> Path:
-    return Path(sweep_dir) / CELLS_DIR
+def cells_dir(sweep_dir: str | AnyPath) -> AnyPath:
+    return as_path(sweep_dir) / CELLS_DIR
 
 
-def bases_dir(sweep_dir: str | Path) -> Path:
-    return Path(sweep_dir) / BASES_DIR
+def bases_dir(sweep_dir: str | AnyPath) -> AnyPath:
+    return as_path(sweep_dir) / BASES_DIR
 
 
-def cell_path(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> Path:
+def cell_path(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> AnyPath:
     return cells_dir(sweep_dir) / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
 
 
-def curve_path(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> Path:
-    return Path(sweep_dir) / CURVES_DIR / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
+def curve_path(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> AnyPath:
+    return as_path(sweep_dir) / CURVES_DIR / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
 
 
-def is_sweep_dir(path: str | Path) -> bool:
+def is_sweep_dir(path: str | AnyPath) -> bool:
     """A directory the sweep service wrote (it has a manifest or a cells/ folder)."""
-    path = Path(path)
+    path = as_path(path)
     return (path / MANIFEST).is_file() or (path / CELLS_DIR).is_dir()
 
 
-def locate_sweep(name_or_path: str | Path, results: str | Path = DEFAULT_RESULTS) -> Path:
-    """A path as given, or ``<results>/<name>`` for a bare sweep name (as `asp-dist status NAME` takes)."""
+def locate_sweep(name_or_path: str | AnyPath, results: str | AnyPath = DEFAULT_RESULTS) -> AnyPath:
+    """A path as given, or ``<results>/<name>`` for a bare sweep name (as `asp-dist status NAME` takes).
+    An ``s3://`` path is taken as given, and with ``--results s3://bucket/prefix`` a bare name that is
+    not a local path is the sweep under that prefix; the bucket is checked first (one clear line for an
+    endpoint that does not answer, refused credentials or a missing bucket)."""
+    if isinstance(name_or_path, S3Path) or str(name_or_path).startswith("s3://"):
+        path = as_path(str(name_or_path))
+        check_bucket(path)
+        return path
+    if isinstance(results, S3Path) or str(results).startswith("s3://"):
+        path = Path(name_or_path).expanduser()
+        if path.exists() or len(path.parts) != 1:
+            return path
+        root = as_path(str(results))
+        check_bucket(root)
+        return root / path.name
     path = Path(name_or_path).expanduser()
     candidate = Path(results).expanduser() / path
     if not path.exists() and len(path.parts) == 1 and candidate.is_dir():
@@ -84,12 +112,12 @@ def locate_sweep(name_or_path: str | Path, results: str | Path = DEFAULT_RESULTS
     return path
 
 
-def visible(path: Path, root: Path) -> bool:
+def visible(path: AnyPath, root: AnyPath) -> bool:
     """False for a file inside a hidden or temp name below `root` (an unfinished write)."""
     return not any(p.startswith((".", "_")) for p in path.relative_to(root).parts)
 
 
-def cell_files(sweep_dir: str | Path, strict: bool = False) -> list[Path]:
+def cell_files(sweep_dir: str | AnyPath, strict: bool = False) -> list[AnyPath]:
     """The finished cells' Parquet files of a sweep, sorted; temp files of unfinished writes are left out.
 
     Each file is verified to be what the store writes (cell_file_problem): one row, whose cell_id is the
@@ -97,10 +125,10 @@ def cell_files(sweep_dir: str | Path, strict: bool = False) -> list[Path]:
     (stray, planted, truncated, copied) is never counted: it is named in a warning on stderr, or, with
     `strict`, refused with a SchemaError."""
     root = cells_dir(sweep_dir)
-    if not root.is_dir():
+    if not isinstance(root, S3Path) and not root.is_dir():  # on S3 the listing below answers that too
         return []
-    good: list[Path] = []
-    seen: dict[str, Path] = {}
+    good: list[AnyPath] = []
+    seen: dict[str, AnyPath] = {}
     for path in sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file()):
         problem = cell_file_problem(path, root)
         if problem is None and path.stem in seen:
@@ -117,11 +145,10 @@ _CHECKED: dict[str, tuple[tuple[int, int, int], str | None]] = {}  # path -> (in
 _WARNED: set[tuple[str, str]] = set()
 
 
-def cell_file_problem(path: Path, root: Path) -> str | None:
+def cell_file_problem(path: AnyPath, root: AnyPath) -> str | None:
     """None for a cell file as write_row leaves it under `root` (a sweep's cells/), else what is wrong.
-    Finished files never change, so a verdict is kept while the file's inode, size and mtime stay the same."""
-    import pyarrow.parquet as pq
-
+    Finished files never change, so a verdict is kept while the file's inode, size and mtime stay the same
+    (on S3: its size and Last-Modified, known from the listing)."""
     try:
         st = path.stat()
     except OSError as err:
@@ -136,23 +163,23 @@ def cell_file_problem(path: Path, root: Path) -> str | None:
     else:
         domain, method = parts[0][len("domain="):], parts[1][len("method="):]
         try:
-            meta = pq.ParquetFile(path)
-            names = meta.schema_arrow.names
-            missing = [c for c in ("cell_id", *PARTITION_COLUMNS) if c not in names]
-            rows = meta.metadata.num_rows
-            if missing:
-                problem = f"lacks the column(s) {', '.join(missing)}; it is not a cell's row"
-            elif rows != 1:
-                problem = f"holds {rows} rows; a cell's file holds exactly one"
-            else:
-                row = meta.read(columns=["cell_id", *PARTITION_COLUMNS]).to_pylist()[0]
-                if row["cell_id"] != path.stem:
-                    problem = f"holds cell {row['cell_id']!r}, not {path.stem!r} as its name says"
-                elif (row["domain"], row["method"]) != (domain, method):
-                    problem = (f"holds a {row['domain']}/{row['method']} row in the directory of "
-                               f"{domain}/{method}")
+            with parquet_file(path) as meta:
+                names = meta.schema_arrow.names
+                missing = [c for c in ("cell_id", *PARTITION_COLUMNS) if c not in names]
+                rows = meta.metadata.num_rows
+                if missing:
+                    problem = f"lacks the column(s) {', '.join(missing)}; it is not a cell's row"
+                elif rows != 1:
+                    problem = f"holds {rows} rows; a cell's file holds exactly one"
                 else:
-                    problem = None
+                    row = meta.read(columns=["cell_id", *PARTITION_COLUMNS]).to_pylist()[0]
+                    if row["cell_id"] != path.stem:
+                        problem = f"holds cell {row['cell_id']!r}, not {path.stem!r} as its name says"
+                    elif (row["domain"], row["method"]) != (domain, method):
+                        problem = (f"holds a {row['domain']}/{row['method']} row in the directory of "
+                                   f"{domain}/{method}")
+                    else:
+                        problem = None
         except (pa.ArrowException, OSError) as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             problem = f"cannot be read as Parquet ({first})"
@@ -160,7 +187,7 @@ def cell_file_problem(path: Path, root: Path) -> str | None:
     return problem
 
 
-def _reject(path: Path, problem: str, strict: bool) -> None:
+def _reject(path: AnyPath, problem: str, strict: bool) -> None:
     if strict:
         raise SchemaError(f"{path} {problem}")
     if (str(path), problem) not in _WARNED:  # once per file and process: a sweep's driver asks often
@@ -168,32 +195,32 @@ def _reject(path: Path, problem: str, strict: bool) -> None:
         print(f"asp-dist: warning: {path} is not counted: it {problem}", file=sys.stderr)
 
 
-def curve_files(sweep_dir: str | Path) -> list[Path]:
+def curve_files(sweep_dir: str | AnyPath) -> list[AnyPath]:
     """The learning curves' Parquet files of a sweep, sorted (one per cell that recorded one)."""
-    root = Path(sweep_dir) / CURVES_DIR
-    if not root.is_dir():
+    root = as_path(sweep_dir) / CURVES_DIR
+    if not isinstance(root, S3Path) and not root.is_dir():
         return []
     return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
 
 
-def done_cell_ids(sweep_dir: str | Path, strict: bool = False) -> set[str]:
+def done_cell_ids(sweep_dir: str | AnyPath, strict: bool = False) -> set[str]:
     """Cells with a finished, verified Parquet file (the file name is the cell id)."""
     return {p.stem for p in cell_files(sweep_dir, strict)}
 
 
-def is_done(sweep_dir: str | Path, domain: str, method: str, cell_id: str) -> bool:
+def is_done(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> bool:
     return cell_path(sweep_dir, domain, method, cell_id).exists()
 
 
 # ---- writing -----------------------------------------------------------------------------------
-def write_row(sweep_dir: str | Path, row: dict[str, Any], sweep_id: str) -> bool:
+def write_row(sweep_dir: str | AnyPath, row: dict[str, Any], sweep_id: str) -> bool:
     """Write one finished cell. Returns False (and writes nothing) if the cell already has a file."""
     row = dict(row, sweep_id=sweep_id)
     table = row_table(row)  # validate before touching the disk
     return write_table_once(table, cell_path(sweep_dir, row["domain"], row["method"], row["cell_id"]))
 
 
-def write_curve(sweep_dir: str | Path, row: dict[str, Any], curve: list[dict[str, float]]) -> bool:
+def write_curve(sweep_dir: str | AnyPath, row: dict[str, Any], curve: list[dict[str, float]]) -> bool:
     """Write one cell's learning curve, before its row (the row is what marks the cell done).
     Same rule as rows: written once, atomically, never overwritten."""
     table = curve_table(row, curve)
@@ -201,28 +228,28 @@ def write_curve(sweep_dir: str | Path, row: dict[str, Any], curve: list[dict[str
 
 
 # ---- failures ----------------------------------------------------------------------------------
-def _failure_path(sweep_dir: str | Path, cell_id: str) -> Path:
-    return Path(sweep_dir) / FAILED_DIR / f"{cell_id}.json"
+def _failure_path(sweep_dir: str | AnyPath, cell_id: str) -> AnyPath:
+    return as_path(sweep_dir) / FAILED_DIR / f"{cell_id}.json"
 
 
-def record_failure(sweep_dir: str | Path, cell_id: str, domain: str, method: str, error: str) -> None:
+def record_failure(sweep_dir: str | AnyPath, cell_id: str, domain: str, method: str, error: str) -> None:
     """Record a cell that kept failing; it stays out of the dataset and is retried on resume."""
     path = _failure_path(sweep_dir, cell_id)
     previous = json.loads(path.read_text()) if path.exists() else {}
     info = {"cell_id": cell_id, "domain": domain, "method": method, "error": error[-4000:],
             "failed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "times_failed": int(previous.get("times_failed", 0)) + 1}
-    atomic_write(path, json.dumps(info, indent=1))
+    write_replace(path, json.dumps(info, indent=1))
 
 
-def clear_failure(sweep_dir: str | Path, cell_id: str) -> None:
+def clear_failure(sweep_dir: str | AnyPath, cell_id: str) -> None:
     _failure_path(sweep_dir, cell_id).unlink(missing_ok=True)
 
 
-def failed_cells(sweep_dir: str | Path) -> dict[str, dict[str, Any]]:
+def failed_cells(sweep_dir: str | AnyPath) -> dict[str, dict[str, Any]]:
     """cell_id -> the failure record (cell_id, domain, method, error, failed_at, times_failed)."""
-    root = Path(sweep_dir) / FAILED_DIR
-    if not root.is_dir():
+    root = as_path(sweep_dir) / FAILED_DIR
+    if not isinstance(root, S3Path) and not root.is_dir():
         return {}
     return {p.stem: json.loads(p.read_text()) for p in sorted(root.glob("*.json")) if visible(p, root)}
 
@@ -234,15 +261,15 @@ def last_error_line(record: dict[str, Any], width: int = 160) -> str:
 
 
 # ---- manifest ----------------------------------------------------------------------------------
-def write_manifest(sweep_dir: str | Path, manifest: dict[str, Any]) -> None:
+def write_manifest(sweep_dir: str | AnyPath, manifest: dict[str, Any]) -> None:
     """Store the grid of a sweep. Its shape is the ledger's (asp_dist.sweep.ledger.new_manifest):
     name, space, grid_hash, cells (ids) and specs (resolved dicts, aligned with cells)."""
-    atomic_write(Path(sweep_dir) / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True))
+    write_replace(as_path(sweep_dir) / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True))
 
 
-def read_manifest(sweep_dir: str | Path) -> dict[str, Any] | None:
+def read_manifest(sweep_dir: str | AnyPath) -> dict[str, Any] | None:
     """The sweep's manifest, or None when it has none. A file that is not one is an error, not 'no grid'."""
-    path = Path(sweep_dir) / MANIFEST
+    path = as_path(sweep_dir) / MANIFEST
     if not path.is_file():
         return None
     try:
@@ -256,16 +283,14 @@ def read_manifest(sweep_dir: str | Path) -> dict[str, Any] | None:
 
 
 # ---- reading -----------------------------------------------------------------------------------
-def read_table(sweep_dir: str | Path, strict: bool = False) -> pa.Table:
+def read_table(sweep_dir: str | AnyPath, strict: bool = False) -> pa.Table:
     """All finished rows of a sweep as one Arrow table with the pinned schema (verified files only, see
     cell_files; `strict`: SchemaError on any file that is not a cell's)."""
-    import pyarrow.dataset as ds
-
-    files = [str(p) for p in cell_files(sweep_dir, strict)]
+    files = cell_files(sweep_dir, strict)
     if not files:
         return schema().empty_table()
     # Explicit schema: files written before a domain was added lack its metric columns -> null.
-    return ds.dataset(files, schema=schema(), format="parquet").to_table()
+    return parquet_dataset(files, schema=schema()).to_table()
 
 
 def _plain_partitions(df: pd.DataFrame) -> pd.DataFrame:
@@ -275,18 +300,15 @@ def _plain_partitions(df: pd.DataFrame) -> pd.DataFrame:
     return df
 
 
-def read_curves(sweep_dir: str | Path) -> pd.DataFrame:
+def read_curves(sweep_dir: str | AnyPath) -> pd.DataFrame:
     """Every learning-curve point of a sweep (one row per cell and step), by cell id and step."""
-    import pyarrow.dataset as ds
-
-    files = [str(p) for p in curve_files(sweep_dir)]
-    table = ds.dataset(files, schema=curve_schema(), format="parquet").to_table() if files else \
-        curve_schema().empty_table()
+    files = curve_files(sweep_dir)
+    table = parquet_dataset(files, schema=curve_schema()).to_table() if files else curve_schema().empty_table()
     df = table.to_pandas()
     return _plain_partitions(df).sort_values(["cell_id", "step"], kind="stable").reset_index(drop=True)
 
 
-def read_rows(sweep_dir: str | Path, strict: bool = False) -> pd.DataFrame:
+def read_rows(sweep_dir: str | AnyPath, strict: bool = False) -> pd.DataFrame:
     """All finished rows of a sweep as a DataFrame (domain and method as plain strings), by cell id."""
     df = read_table(sweep_dir, strict).to_pandas()
     return _plain_partitions(df).sort_values("cell_id", kind="stable").reset_index(drop=True)

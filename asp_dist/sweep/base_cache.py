@@ -7,6 +7,14 @@ through an atomic rename, so a reader never sees half a base, and a crash while 
 only a stale temp file (the lock dies with its process). Works on one machine and on a shared
 filesystem with POSIX locks (local disk, NFSv4).
 
+On S3 (``cache_dir`` an asp_dist.results.location.S3Path) there are no fcntl locks: the first cell
+that needs a base takes a lease ``bases/.<base_key>.lease/`` (asp_dist.sweep.lease: a conditional
+PUT, renewed while it trains; it lapses if the worker dies) and stores the base with a conditional
+PUT (``If-None-Match: *``); cells asking meanwhile poll for the object and load it. Should two
+workers still both train one base (a builder silent for longer than the lease lasts), the first PUT
+wins and the other cell loads the stored base instead of its own: every cell of a trial uses the
+same bytes, and a stored base is never overwritten.
+
 A base that no attempt could train to the domain's bar is remembered too, as
 ``<base_key>.rejected.json``: every other cell of that trial then fails at once with the same
 BaseRejected message instead of repeating all attempts (21 cells x 5 attempts for one
@@ -18,38 +26,78 @@ from __future__ import annotations
 
 import fcntl
 import json
+import time
 from pathlib import Path
 
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.fsutil import atomic_write
+from asp_dist.results.location import AnyPath, S3Path, write_replace
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 
-
-def base_path(cache_dir: Path, base_key: str) -> Path:
-    return Path(cache_dir) / f"{base_key}.pt"
+POLL_S = 1.0  # on S3: how often a cell waiting for a base being trained elsewhere looks for it
 
 
-def rejected_path(cache_dir: Path, base_key: str) -> Path:
-    return Path(cache_dir) / f"{base_key}.rejected.json"
+def _dir(cache_dir: AnyPath) -> AnyPath:
+    return cache_dir if isinstance(cache_dir, S3Path) else Path(cache_dir)
 
 
-def _raise_if_rejected(cache_dir: Path, base_key: str) -> None:
+def base_path(cache_dir: AnyPath, base_key: str) -> AnyPath:
+    return _dir(cache_dir) / f"{base_key}.pt"
+
+
+def rejected_path(cache_dir: AnyPath, base_key: str) -> AnyPath:
+    return _dir(cache_dir) / f"{base_key}.rejected.json"
+
+
+def _raise_if_rejected(cache_dir: AnyPath, base_key: str) -> None:
     path = rejected_path(cache_dir, base_key)
     if path.exists():
         raise BaseRejected(json.loads(path.read_text())["error"] + f" [remembered in {path}]")
 
 
-def _load(path: Path, spec: CellSpec) -> BaseModel:
+def _load(path: AnyPath, spec: CellSpec) -> BaseModel:
     base = base_from_bytes(path.read_bytes())
     if base.key != spec.base_key:
         raise ValueError(f"base cache file {path} holds base {base.key}, expected {spec.base_key}")
     return base
 
 
-def get_base(spec: CellSpec, cache_dir: Path, progress: ProgressFn | None = None) -> tuple[BaseModel, bool]:
+def _get_remote_base(spec: CellSpec, cache_dir: S3Path, progress: ProgressFn | None) -> tuple[BaseModel, bool]:
+    from asp_dist.sweep.lease import Lease
+
+    path = base_path(cache_dir, spec.base_key)
+    while True:
+        try:
+            return _load(path, spec), True
+        except FileNotFoundError:
+            pass
+        _raise_if_rejected(cache_dir, spec.base_key)
+        lease = Lease(cache_dir / f".{spec.base_key}.lease")
+        if lease.try_acquire() is not None:
+            time.sleep(POLL_S)  # another cell trains it: wait for its object
+            continue
+        try:
+            if path.exists():
+                return _load(path, spec), True
+            _raise_if_rejected(cache_dir, spec.base_key)  # decided while we waited
+            try:
+                base = train_accepted_base(spec, progress)
+            except BaseRejected as err:
+                write_replace(rejected_path(cache_dir, spec.base_key), json.dumps({"error": str(err)}))
+                raise
+            if path.create(base_to_bytes(base)):
+                return base, False
+            return _load(path, spec), True  # stored by another cell meanwhile: every cell uses the stored bytes
+        finally:
+            lease.release()
+
+
+def get_base(spec: CellSpec, cache_dir: AnyPath, progress: ProgressFn | None = None) -> tuple[BaseModel, bool]:
     """The cell's base: loaded from the cache, or trained once and stored. Returns (base, was_cached)."""
     spec = spec.resolved()
+    if isinstance(cache_dir, S3Path):
+        return _get_remote_base(spec, cache_dir, progress)
     cache_dir = Path(cache_dir)
     path = base_path(cache_dir, spec.base_key)
     if path.exists():

@@ -6,6 +6,10 @@ Also here, for the same reason: the check that a cluster address answers (before
 and anything is written) and SIGTERM handled as Ctrl-C from a sweep command's first line on.
 The files themselves (manifest, finished cells, failures) are laid out by asp_dist.results.store;
 this module decides what they must say for a sweep to start, continue or be reported.
+
+A sweep under ``--results s3://bucket/prefix`` is the same ledger on object storage: its directory
+is an S3Path (asp_dist.results.location), and its lock is a lease (asp_dist.sweep.lease) instead
+of an fcntl lock, which object storage does not have.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import os
 import re
 import signal
 import socket
+import sys
 import tempfile
 import threading
 import time
@@ -28,6 +33,7 @@ from typing import Any, Iterable, Iterator
 from asp_dist import __version__
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.results import store
+from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
 from asp_dist.spec import CellSpec
 from asp_dist.sweep.spaces import grid_hash
 
@@ -44,7 +50,7 @@ class SweepResult:
     """Where a sweep run left its grid."""
 
     name: str
-    sweep_dir: Path
+    sweep_dir: AnyPath
     total: int
     done: int
     failed: int
@@ -55,15 +61,45 @@ class SweepResult:
 
 
 # ---- name and directory --------------------------------------------------------------------------
-def sweep_dir_for(results: str | Path, name: str) -> Path:
-    """``<results>/<name>``, absolute; refuses a name that is not a plain directory name."""
+def sweep_dir_for(results: str | AnyPath, name: str) -> AnyPath:
+    """``<results>/<name>``, absolute; refuses a name that is not a plain directory name. For
+    ``s3://bucket/prefix`` the bucket is checked (endpoint, credentials, bucket: one line each)."""
     if not SWEEP_NAME_RE.match(name):
         raise SweepError(f"invalid sweep name {name!r}: use letters, digits, '.', '_' or '-' (at most 64)")
+    if is_remote(results):
+        root = as_path(str(results))
+        check_bucket(root)
+        return root / name
     return Path(results).expanduser().resolve() / name
 
 
-def check_sweep_dir(sweep_dir: Path) -> None:
+def _remote_is_foreign(sweep_dir: S3Path) -> bool:
+    """An S3 prefix with objects but no manifest: not a sweep (hidden names such as a lease or a write
+    probe left by an interrupted start do not count)."""
+    if store.read_manifest(sweep_dir) is not None:
+        return False
+    return any(store.visible(p, sweep_dir) for p in sweep_dir.rglob("*"))
+
+
+def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool) -> None:
+    check_bucket(sweep_dir)
+    if _remote_is_foreign(sweep_dir):
+        raise SweepError(f"{sweep_dir} holds objects and is not a sweep (no manifest.json); choose another --name")
+    if write_probe:  # credentials that may read but not write are refused before anything else is written
+        probe = sweep_dir / f".write-test-{os.getpid()}-{int(time.time() * 1000)}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink(missing_ok=True)
+        except SpecError as e:
+            raise SweepError(f"results prefix {sweep_dir.parent} is not writable ({e}); choose another "
+                             f"with --results") from None
+
+
+def check_sweep_dir(sweep_dir: AnyPath) -> None:
     """Refuse to start in a directory that holds something other than a sweep, or cannot be written."""
+    if isinstance(sweep_dir, S3Path):
+        _check_remote_sweep_dir(sweep_dir, write_probe=True)
+        return
     if sweep_dir.exists() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
         raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
     try:
@@ -81,8 +117,11 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
-def check_sweep_dir_readonly(sweep_dir: Path) -> None:
+def check_sweep_dir_readonly(sweep_dir: AnyPath) -> None:
     """check_sweep_dir without touching the disk: what a run would refuse, refused before anything is written."""
+    if isinstance(sweep_dir, S3Path):
+        _check_remote_sweep_dir(sweep_dir, write_probe=False)
+        return
     if sweep_dir.exists() and not sweep_dir.is_dir():
         raise SweepError(f"{sweep_dir} exists and is not a directory; choose another --name or --results")
     if sweep_dir.is_dir() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
@@ -210,11 +249,53 @@ def sigterm_as_interrupt() -> Iterator[None]:
 
 
 # ---- lock ----------------------------------------------------------------------------------------
+LEASE_DIR = ".lease"  # on S3: <sweep>/.lease/<generation>.json (asp_dist.sweep.lease)
+
+
+def _sweep_lease(sweep_dir: S3Path):
+    from asp_dist.sweep.lease import Lease
+
+    def lost(why: str) -> None:  # another run took the sweep over: stop this one as Ctrl-C would
+        print(f"asp-dist: error: {why}; stopping this run", file=sys.stderr)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    return Lease(sweep_dir / LEASE_DIR, on_lost=lost)
+
+
 @contextmanager
-def sweep_lock(sweep_dir: Path, grace_s: float = LOCK_GRACE_S) -> Iterator[None]:
+def _remote_sweep_lock(sweep_dir: S3Path, grace_s: float) -> Iterator[None]:
+    lease = _sweep_lease(sweep_dir)
+    deadline = time.monotonic() + grace_s
+    told = False
+    while (busy := lease.try_acquire()) is not None:
+        silent = busy.age_s > 2 * lease.renew_s  # not renewed for two intervals: its driver is most likely dead
+        if silent:  # (killed on another machine): wait for its lease to lapse rather than refuse
+            left = float(busy.record.get("ttl_s", lease.ttl_s)) - busy.age_s
+            deadline = max(deadline, time.monotonic() + left + 2.0)
+            if not told:
+                print(f"asp-dist: sweep {sweep_dir.name!r}: waiting up to {max(left, 0):.0f} s for the silent lease of "
+                      f"{busy.record.get('holder', 'another run')} to lapse", file=sys.stderr)
+                told = True
+        if time.monotonic() >= deadline:
+            raise SweepError(f"sweep {sweep_dir.name!r} is already running ({busy.describe()}); wait for it to "
+                             f"finish or use another --name")
+        time.sleep(1.0 if silent else 0.2)
+    try:
+        yield
+    finally:
+        lease.release()
+
+
+@contextmanager
+def sweep_lock(sweep_dir: AnyPath, grace_s: float = LOCK_GRACE_S) -> Iterator[None]:
     """Refuse a second concurrent run of one sweep. fcntl: the OS drops the lock when its holder dies,
     even by SIGKILL, so a crashed run never blocks the resume. Retried for ``grace_s`` so that a
-    `status` probing the lock at that moment (lock_holder) never makes the run refuse."""
+    `status` probing the lock at that moment (lock_holder) never makes the run refuse. On S3: a lease
+    (asp_dist.sweep.lease), created by a conditional PUT and renewed while the run lasts."""
+    if isinstance(sweep_dir, S3Path):
+        with _remote_sweep_lock(sweep_dir, grace_s):
+            yield
+        return
     fh = open(sweep_dir / LOCK_FILE, "a+")
     try:
         deadline = time.monotonic() + grace_s
@@ -240,12 +321,15 @@ def sweep_lock(sweep_dir: Path, grace_s: float = LOCK_GRACE_S) -> Iterator[None]
         fh.close()
 
 
-def lock_holder(sweep_dir: Path) -> str | None:
+def lock_holder(sweep_dir: AnyPath) -> str | None:
     """Who holds the sweep's lock, or None if no run of the sweep is going on.
 
     Never blocks and never refuses anyone: the file is opened read-only (nothing is created or written)
     and probed with a *shared* lock, which fails only against a run's exclusive one. Two probes never
-    see each other as a run, and a run starting during a probe retries (sweep_lock's grace)."""
+    see each other as a run, and a run starting during a probe retries (sweep_lock's grace). On S3 the
+    lease is read (a listing and one GET), never written."""
+    if isinstance(sweep_dir, S3Path):
+        return _sweep_lease(sweep_dir).holder()
     try:
         fh = open(sweep_dir / LOCK_FILE)
     except FileNotFoundError:
@@ -267,7 +351,7 @@ def new_manifest(name: str, space: str, specs: list[CellSpec]) -> dict[str, Any]
             "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
-def check_manifest(sweep_dir: Path, name: str, specs: list[CellSpec], space: str) -> dict[str, Any]:
+def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str) -> dict[str, Any]:
     """The sweep's manifest (a new one if it has none); refuses a grid that differs from the stored one."""
     existing = store.read_manifest(sweep_dir)
     if existing is None:
@@ -280,7 +364,7 @@ def check_manifest(sweep_dir: Path, name: str, specs: list[CellSpec], space: str
     return existing
 
 
-def check_manifest_shape(manifest: dict[str, Any], where: Path) -> None:
+def check_manifest_shape(manifest: dict[str, Any], where: AnyPath) -> None:
     """A manifest as new_manifest writes it: name, space and grid_hash as text, the cell ids and a resolved
     spec dict (with its domain and method) per cell. Anything else is refused in one line, never a KeyError."""
     path = where / store.MANIFEST
@@ -295,10 +379,10 @@ def check_manifest_shape(manifest: dict[str, Any], where: Path) -> None:
             raise SweepError(f"{path} is not a sweep manifest: every spec needs a domain and a method")
 
 
-def read_sweep(results: str | Path, name: str) -> tuple[Path, dict[str, Any]]:
+def read_sweep(results: str | AnyPath, name: str) -> tuple[AnyPath, dict[str, Any]]:
     """The directory and manifest of an existing sweep (for resume and status), its shape checked."""
     sweep_dir = sweep_dir_for(results, name)
-    if sweep_dir.exists() and not sweep_dir.is_dir():
+    if not isinstance(sweep_dir, S3Path) and sweep_dir.exists() and not sweep_dir.is_dir():
         raise SweepError(f"{sweep_dir} is not a sweep directory")
     manifest = store.read_manifest(sweep_dir)
     if manifest is None:
@@ -308,14 +392,20 @@ def read_sweep(results: str | Path, name: str) -> tuple[Path, dict[str, Any]]:
     return sweep_dir, manifest
 
 
-def check_not_running(sweep_dir: Path) -> None:
-    holder = lock_holder(sweep_dir)
+def check_not_running(sweep_dir: AnyPath) -> None:
+    if isinstance(sweep_dir, S3Path):  # a silent lease (driver killed elsewhere) is waited out by the run itself
+        lease = _sweep_lease(sweep_dir)
+        state = lease.current()
+        live = state is not None and state.live(lease.ttl_s) and state.age_s <= 2 * lease.renew_s
+        holder = state.describe() if live else None
+    else:
+        holder = lock_holder(sweep_dir)
     if holder is not None:
         raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
                          f"or use another --name")
 
 
-def check_can_start(results: str | Path, name: str, specs: list[CellSpec], space: str) -> Path:
+def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str) -> AnyPath:
     """Everything `sweep` refuses about where it would run, checked without writing: the name, the
     results dir, a directory that is not a sweep, a sweep started with another grid, a running sweep.
     The run checks them again under its lock (tune._run); this is the early, read-only answer."""
@@ -328,7 +418,7 @@ def check_can_start(results: str | Path, name: str, specs: list[CellSpec], space
     return sweep_dir
 
 
-def check_can_resume(results: str | Path, name: str) -> list[CellSpec]:
+def check_can_resume(results: str | AnyPath, name: str) -> list[CellSpec]:
     """Everything `resume` refuses, checked without writing; returns the grid's specs."""
     sweep_dir, manifest = read_sweep(results, name)
     specs = specs_from_manifest(manifest)
@@ -350,7 +440,7 @@ def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:
     return specs
 
 
-def finished_and_failed(sweep_dir: Path, grid: Iterable[str]) -> tuple[set[str], set[str]]:
+def finished_and_failed(sweep_dir: AnyPath, grid: Iterable[str]) -> tuple[set[str], set[str]]:
     """Cells of the grid with a row, and cells recorded as failed that have no row (a retry may have won)."""
     grid = set(grid)
     done = store.done_cell_ids(sweep_dir) & grid
@@ -359,7 +449,7 @@ def finished_and_failed(sweep_dir: Path, grid: Iterable[str]) -> tuple[set[str],
 
 
 # ---- status --------------------------------------------------------------------------------------
-def sweep_status(name: str, results: str | Path = store.DEFAULT_RESULTS) -> str:
+def sweep_status(name: str, results: str | AnyPath = store.DEFAULT_RESULTS) -> str:
     """Done / failed / pending counts per domain and method, whether a run is going on, and the failures."""
     sweep_dir, manifest = read_sweep(results, name)
     done, failed = finished_and_failed(sweep_dir, manifest["cells"])

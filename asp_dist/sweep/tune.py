@@ -18,6 +18,12 @@ A worker that dies is retried ``max_failures`` times from its last checkpoint; a
 still fails (or fails deterministically, e.g. a base that never meets its bar) is recorded
 under ``failed/`` and the sweep goes on. ``resume`` retries failed cells.
 
+With ``--results s3://bucket/prefix`` the same flow runs on object storage: cell rows, failures, the
+manifest and the bases go to the bucket through the store, the lock is a lease (ledger), and Tune's
+experiment state and checkpoints go to ``<sweep>/tune/`` in the bucket through
+``RunConfig(storage_path=..., storage_filesystem=pyarrow S3FileSystem)``; a checkpoint is staged in
+the trial's working directory under the Ray temp dir (node-local scratch) before Tune uploads it.
+
 Nothing is left behind: checkpoints are staged under the sweep's own ``tune/.ckpt-tmp/``; SIGTERM
 stops a sweep as Ctrl-C does (ledger.sigterm_as_interrupt); a reaper process ends the embedded
 Ray's processes within seconds when the driver dies, even by SIGKILL; and old session
@@ -52,9 +58,9 @@ import torch  # noqa: E402
 from ray import tune  # noqa: E402
 
 from asp_dist.data.mnist import MNISTError  # noqa: E402
-from asp_dist.errors import SpecError, SweepError  # noqa: E402
-from asp_dist.fsutil import atomic_write  # noqa: E402
+from asp_dist.errors import SpecError, StorageError, SweepError  # noqa: E402
 from asp_dist.results import store  # noqa: E402
+from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep import ledger  # noqa: E402
 from asp_dist.sweep.base_cache import get_base  # noqa: E402
@@ -84,7 +90,7 @@ def train_cell(config: dict[str, Any]) -> None:
     torch.set_num_threads(1)
     config = config["cell"]
     spec = CellSpec.from_dict(config["spec"])
-    sweep_dir = Path(config["sweep_dir"])
+    sweep_dir = as_path(config["sweep_dir"])
     cell_id = config["cell_id"]
     if store.is_done(sweep_dir, spec.domain, spec.method, cell_id):
         tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
@@ -95,7 +101,9 @@ def train_cell(config: dict[str, Any]) -> None:
         with checkpoint.as_directory() as d:
             restore = torch.load(Path(d) / "state.pt", weights_only=False)
 
-    staging = sweep_dir / TUNE_DIR / CKPT_TMP
+    # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
+    # under the Ray temp dir (node-local scratch, pruned with its session).
+    staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
 
     def save(state: dict) -> None:
         # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
@@ -114,6 +122,8 @@ def train_cell(config: dict[str, Any]) -> None:
         curve: list[dict[str, float]] = []
         row = run_cell(spec, base=base, checkpoint=save, restore=restore,
                        checkpoint_every_s=config["checkpoint_every_s"], curve=curve)
+    except StorageError:
+        raise  # object storage that did not answer: a crash, retried from the last checkpoint
     except (SpecError, BaseRejected, MNISTError) as e:
         # Deterministic (a bad spec, a base that never meets its bar, missing or corrupt data): a retry
         # would fail the same way. Record it once and let the sweep go on; `resume` tries it again.
@@ -150,7 +160,7 @@ class SweepCallback(tune.Callback):
 
     def _counter(self) -> SweepCounter:
         if self.counter is None:
-            done, _ = ledger.finished_and_failed(Path(self.sweep_dir), self.grid)
+            done, _ = ledger.finished_and_failed(as_path(self.sweep_dir), self.grid)
             self.counter = SweepCounter(self.name, self.grid, done, where=self.sweep_dir)
         return self.counter
 
@@ -159,9 +169,9 @@ class SweepCallback(tune.Callback):
         return {t.config["cell"]["cell_id"] for t in trials if t.status == "RUNNING"}
 
     def _refresh(self, trials) -> None:
-        done, failed = ledger.finished_and_failed(Path(self.sweep_dir), self.grid)
+        done, failed = ledger.finished_and_failed(as_path(self.sweep_dir), self.grid)
         self._counter().update(done=done, failed=failed, running=self._running(trials),
-                               last_failure=last_failure(Path(self.sweep_dir), failed))
+                               last_failure=last_failure(as_path(self.sweep_dir), failed))
 
     def on_step_end(self, iteration, trials, **info):
         self._counter().update(running=self._running(trials))
@@ -178,12 +188,12 @@ class SweepCallback(tune.Callback):
             error = Path(trial.error_file).read_text()
         cell = trial.config["cell"]
         spec = cell["spec"]
-        store.record_failure(Path(self.sweep_dir), cell["cell_id"], spec["domain"], spec["method"],
+        store.record_failure(as_path(self.sweep_dir), cell["cell_id"], spec["domain"], spec["method"],
                              f"failed after {trial.num_failures} attempt(s): {error}")
         self._refresh(trials)
 
 
-def last_failure(sweep_dir: Path, failed: set[str]) -> str:
+def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
     """The newest failure of the grid, as "cell id: last line of its error"."""
     records = [r for cell_id, r in store.failed_cells(sweep_dir).items() if cell_id in failed]
     if not records:
@@ -486,7 +496,16 @@ def prune_reaper_logs(temp_dir: str | Path, keep: int = RAY_SESSIONS_KEPT) -> No
             old.unlink(missing_ok=True)
 
 
-def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
+def _tune_storage(sweep_dir: AnyPath) -> tuple[str, Any]:
+    """Where Tune keeps the sweep's experiments: (storage_path, storage_filesystem). On S3 the path is
+    ``bucket/prefix/<sweep>/tune`` on pyarrow's S3FileSystem (its endpoint from AWS_ENDPOINT_URL, its
+    credentials from each node's AWS chain: the pickled filesystem carries none)."""
+    if isinstance(sweep_dir, S3Path):
+        return (sweep_dir / TUNE_DIR).fs_path, filesystem()
+    return str(sweep_dir / TUNE_DIR), None
+
+
+def _tune_experiment(sweep_dir: AnyPath, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
     """Name of the Tune experiment to run, and whether to restore it.
 
     An interrupted experiment is restored when it covers every pending cell (then its running
@@ -498,18 +517,20 @@ def _tune_experiment(sweep_dir: Path, pending: list[CellSpec], allow_restore: bo
     pending_ids = {s.cell_id for s in pending}
     if current_path.exists():
         current = json.loads(current_path.read_text())
-        exp_path = tune_root / current["experiment"]
-        if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(str(exp_path)):
+        storage_path, storage_fs = _tune_storage(sweep_dir)
+        exp_path = f"{storage_path}/{current['experiment']}"
+        if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(
+                exp_path, storage_filesystem=storage_fs):
             return current["experiment"], True
         number = int(current["experiment"].rsplit("-", 1)[1]) + 1
     else:
         number = 1
     experiment = f"run-{number}"
-    atomic_write(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
+    write_replace(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
     return experiment, False
 
 
-def _run_tune(sweep_dir: Path, callback: SweepCallback, pending: list[CellSpec], workers: int, max_failures: int,
+def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[CellSpec], workers: int, max_failures: int,
               checkpoint_every_s: float) -> None:
     # Rows live in Parquet, not in Tune's per-trial logs (disabled above): silence Tune's
     # complaint that it cannot build its own result table from them.
@@ -568,23 +589,25 @@ def _trainable():
     return tune.with_resources(train_cell, {"cpu": 1})
 
 
-def _restored_tuner(sweep_dir: Path, experiment: str) -> tune.Tuner:
+def _restored_tuner(sweep_dir: AnyPath, experiment: str) -> tune.Tuner:
     # Restores the stored Tune settings too (max_failures, checkpoint interval, callbacks).
-    return tune.Tuner.restore(str(sweep_dir / TUNE_DIR / experiment), trainable=_trainable(),
-                              resume_unfinished=True, resume_errored=True)
+    storage_path, storage_fs = _tune_storage(sweep_dir)
+    return tune.Tuner.restore(f"{storage_path}/{experiment}", trainable=_trainable(), resume_unfinished=True,
+                              resume_errored=True, storage_filesystem=storage_fs)
 
 
-def _new_tuner(sweep_dir: Path, callback: SweepCallback, experiment: str, pending: list[CellSpec], workers: int,
+def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pending: list[CellSpec], workers: int,
                max_failures: int, checkpoint_every_s: float) -> tune.Tuner:
     configs = [{"spec": s.to_dict(), "cell_id": s.cell_id, "sweep_dir": str(sweep_dir), "sweep_id": callback.name,
                 "checkpoint_every_s": checkpoint_every_s} for s in pending]
+    storage_path, storage_fs = _tune_storage(sweep_dir)
     return tune.Tuner(
         _trainable(),
         param_space={"cell": tune.grid_search(configs)},
         tune_config=tune.TuneConfig(max_concurrent_trials=workers, reuse_actors=True,
                                     trial_name_creator=trial_name, trial_dirname_creator=trial_name),
         run_config=tune.RunConfig(
-            name=experiment, storage_path=str(sweep_dir / TUNE_DIR), verbose=0,
+            name=experiment, storage_path=storage_path, storage_filesystem=storage_fs, verbose=0,
             failure_config=tune.FailureConfig(max_failures=max_failures),
             # num_to_keep=1 also makes Tune save its experiment state after every trial
             # checkpoint, so a killed driver resumes each cell from its latest checkpoint.
@@ -643,7 +666,8 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
                 manifest = ledger.check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
                 if store.read_manifest(sweep_dir) is None:
                     store.write_manifest(sweep_dir, manifest)
-                shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers
+                if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch
+                    shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers
                 done, _ = ledger.finished_and_failed(sweep_dir, grid)
                 pending = [s for s in specs if s.cell_id not in done]
                 counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
