@@ -52,6 +52,9 @@ from typing import Any, Iterator, TextIO
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
 os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+# Short cells finish in bursts and each one snapshots the experiment: Tune then warns every few
+# seconds that snapshots "may become a bottleneck" (they cost milliseconds here). Keep the log readable.
+os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")
 
 import ray  # noqa: E402
 import torch  # noqa: E402
