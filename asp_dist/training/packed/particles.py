@@ -1,0 +1,842 @@
+"""K particle cells trained as one batched model: the packed counterpart of the fused trainer.
+
+A particle cell is 25,000 updates of batch 8 through networks of a few thousand weights; its
+cost is the number of tensor operations, not arithmetic. This trainer stacks the parameters of
+K cells ("members") on a leading dimension and runs the fused trainer's update
+(asp_dist/training/fast/particles.py: same terms, same order, same hand-derived gradients) with
+batched matmuls, so that each tensor op serves K cells; one batched Adam step
+(torch._fused_adam_, one pass over the stacked buffer) updates them all.
+
+What stays per member, so that a member's result does not depend on its pack-mates:
+
+- loss weights (PC / OSP / ASP differ only in them), λ0, λ1 and its schedule, the adversarial
+  loss kind, γ, the entropy and value coefficients, both learning rates: per-member columns;
+- data: its own paired set (padded to the pack's largest, padded rows weighted 0), its own U,
+  its own trial's target;
+- random streams: its own generator, seeded as the single-cell trainer seeds it, drawn in the
+  single-cell order. torch.multinomial(p, 1) *is* argmax(p / Exp(1)) with the Exp(1) draws
+  taken from the generator (ATen's one-sample path), so the draws of up to CHUNK updates
+  (Exp(1) per action, uniform re-spawns when an episode ends, indices into U) are made ahead,
+  member by member with that member's generator and in the order the single-cell update makes
+  them, and the batched update consumes them; episode ends are known in advance (the envs
+  start staggered and advance one step per rollout step), so nothing in the draws depends on
+  values. A generator ends training in the single-cell run's state.
+
+Independence of pack-mates: no op mixes members (batched matmuls, elementwise ops, reductions
+along rows or features), padded rows add exact zeros, and a frozen member keeps its place in
+every call. So a member's arithmetic is bit for bit the same whatever its mates are (method,
+data, trial, divergence) as long as the pack's shapes are the same (number of members, padded
+paired rows); with other shapes a few kernels round differently (a batched matmul with one
+member and one output column takes a gemv path; the last elements of a vectorised elementwise
+op over the whole stack take the scalar path), and the member's weights then differ from their
+run in another pack by float rounding (about 1e-7 after 100 updates), as they differ from the
+single-cell run. Over a whole cell such a difference can flip a sampled action and send the
+run down another, equally likely, trajectory: rows are reproducible for a fixed packing, not
+across packings. tests/test_packed.py checks both.
+
+A member whose gradient becomes non-finite (checked every update, before the Adam step) or
+whose recorded loss does is frozen: its gradients are zeroed and its momentum cleared, so Adam
+leaves its parameters at their last finite values, and it is reported failed. Its rows are
+still computed (the shapes and the calls stay the same, so nothing changes for the others)
+but never read by another member.
+
+Packs: any mix of methods, paired counts, trials and per-member knobs, provided the members
+agree on the fields in SHARED (tensor shapes, the length of training). Mixed packs compute
+the union of the members' work (a PC member rides along in the rollout with weight 0), so
+packs of one method are cheapest. Knob values the fused trainer does not implement (replay
+buffer, speaker-only paired loss) are not packable: `supports`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, NamedTuple, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from asp_dist.domains import get_domain
+from asp_dist.domains.contract import ProgressFn, Tensors
+from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
+from asp_dist.spec import CellSpec
+from asp_dist.training.adversary import Adversaries
+from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
+from asp_dist.training.cell import PhaseTimer, make_probe
+from asp_dist.training.fast.particles import FusedParticleTrainer
+from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
+from asp_dist.training.row import LOSS_TERMS, build_row
+from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+
+_tanh_backward = torch.ops.aten.tanh_backward
+_threshold_backward = torch.ops.aten.threshold_backward
+_leaky_relu_backward = torch.ops.aten.leaky_relu_backward
+
+# Fields every member of a pack shares: they fix the tensor shapes and the loop.
+SHARED = ("domain", "train_steps", "batch_size", "particles_episode_len", "particles_rollout_len",
+          "particles_message_dim", "particles_hidden", "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
+# What each member records per update (the fused trainer's diagnostics), in column order.
+TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
+_COL = {name: i for i, name in enumerate(TERMS)}
+CHUNK = 128  # updates whose random draws are made ahead
+BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's and FlatAdam's defaults
+
+
+def supports(spec: CellSpec) -> bool:
+    """Whether `spec` can train in a pack: a particle cell the fused trainer implements."""
+    spec = spec.resolved()
+    return spec.domain == "particles" and FusedParticleTrainer.supports(spec)
+
+
+def pack_key(spec: CellSpec) -> tuple:
+    """Cells with equal keys can share a pack."""
+    spec = spec.resolved()
+    return tuple(getattr(spec, name) for name in SHARED)
+
+
+@dataclass
+class Member:
+    """One cell of a pack: its spec and everything the pack keeps per member."""
+
+    spec: CellSpec
+    weights: LossWeights
+    agents: ParticleAgents           # parameters are views of the pack's buffer: always current
+    disc: torch.nn.Module | None     # likewise, for ASP members
+    gen: torch.Generator
+    n_paired: int
+    terms: tuple[str, ...]           # the diagnostics this member records (as the fused trainer)
+    probe: Callable[[int], dict[str, float]] | None = None
+    curve: list[dict[str, float]] = field(default_factory=list)
+    failed_step: int | None = None
+    error: str | None = None
+
+    @property
+    def self_play(self) -> bool:
+        return self.weights.needs_self_play
+
+    @property
+    def adversary(self) -> bool:
+        return self.weights.needs_adversary
+
+    @property
+    def failed(self) -> bool:
+        return self.error is not None
+
+
+class _Rollout(NamedTuple):
+    """As fast.particles.Rollout, with a leading member dimension."""
+
+    speaker_in: torch.Tensor
+    speaker_hidden: torch.Tensor
+    message: torch.Tensor
+    listener_in: torch.Tensor
+    listener_hidden: torch.Tensor
+    logp: torch.Tensor
+    actions: torch.Tensor
+    values: torch.Tensor
+    returns: torch.Tensor
+    critic_in: torch.Tensor
+    critic_hidden: torch.Tensor
+
+
+def _column(values: Sequence[float], *, dims: int = 2, dtype=torch.float32) -> torch.Tensor:
+    """Per-member scalars as a (M, 1[, 1]) tensor; float32 rounding of each Python float, as
+    a Python scalar gets in an op with a float32 tensor."""
+    return torch.tensor(list(values), dtype=dtype).view(-1, *([1] * (dims - 1)))
+
+
+def _lin_back(dy: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, grad_weight: torch.Tensor | None,
+              grad_bias: torch.Tensor | None, need_input_grad: bool = True) -> torch.Tensor | None:
+    """Batched y = x·Wᵀ + b: write dW and db into their (member-stacked) gradient views, return dx."""
+    if grad_weight is not None:
+        torch.bmm(dy.transpose(1, 2), x, out=grad_weight)
+        torch.sum(dy, 1, out=grad_bias)
+    return torch.bmm(dy, weight) if need_input_grad else None
+
+
+class _StackedParams:
+    """The parameters of M modules of one architecture, stacked: each parameter tensor becomes a
+    contiguous (M, *shape) block of one flat buffer (tensor-major, so that batched matmuls write
+    their gradients into contiguous blocks), with a matching gradient buffer and Adam moments.
+    Each module's parameters are re-pointed to views of its slice of the blocks (as FlatAdam does
+    for one module), so the modules see every update."""
+
+    def __init__(self, modules: Sequence[torch.nn.Module], lrs: Sequence[float]):
+        shapes = [tuple(p.shape) for p in modules[0].parameters()]
+        sizes = [int(torch.Size(s).numel()) for s in shapes]
+        M, total = len(modules), len(modules) * sum(sizes)
+        self.param, self.grad = torch.zeros(total), torch.zeros(total)
+        self.exp_avg, self.exp_avg_sq = torch.zeros(total), torch.zeros(total)
+        self.steps = torch.zeros(())  # every active member steps together
+        self.lrs = list(lrs)
+        self.views: list[torch.Tensor] = []       # (M, *shape); biases as (M, 1, out) for baddbmm
+        self.grad_views: list[torch.Tensor] = []  # (M, *shape)
+        self.member_ranges: list[list[tuple[int, int]]] = [[] for _ in range(M)]
+        offset = 0
+        for shape, n in zip(shapes, sizes):
+            block = self.param[offset:offset + M * n].view(M, *shape)
+            self.views.append(block.unsqueeze(1) if len(shape) == 1 else block)
+            self.grad_views.append(self.grad[offset:offset + M * n].view(M, *shape))
+            for i in range(M):
+                self.member_ranges[i].append((offset + i * n, n))
+            offset += M * n
+        for i, module in enumerate(modules):
+            params = list(module.parameters())
+            if [tuple(p.shape) for p in params] != shapes:
+                raise ValueError("modules of a pack must have the same parameter shapes")
+            for p, (start, n) in zip(params, self.member_ranges[i]):
+                row = self.param[start:start + n].view_as(p)
+                row.copy_(p.detach())
+                p.data = row
+        self.frozen = torch.zeros(0, dtype=torch.long)
+        self._group_by_lr()
+
+    def member_flat(self, i: int, buffer: torch.Tensor | None = None) -> torch.Tensor:
+        """Member i's values of `buffer` (default: the parameters) in its module's parameter order."""
+        buffer = self.param if buffer is None else buffer
+        return torch.cat([buffer[start:start + n] for start, n in self.member_ranges[i]])
+
+    def _group_by_lr(self) -> None:
+        """Adam's calls: the whole buffer when every member has one learning rate, else one call
+        per learning rate over the slices of its members."""
+        if len(set(self.lrs)) == 1:
+            self.groups = [(self.lrs[0], [self.param], [self.grad], [self.exp_avg], [self.exp_avg_sq])]
+            return
+        self.groups = []
+        for lr in sorted(set(self.lrs)):
+            ranges = [r for i, x in enumerate(self.lrs) if x == lr for r in self.member_ranges[i]]
+            self.groups.append((lr, *([buf[start:start + n] for start, n in ranges]
+                                      for buf in (self.param, self.grad, self.exp_avg, self.exp_avg_sq))))
+
+    def freeze(self, rows: Sequence[int]) -> None:
+        """Members whose parameters Adam must leave as they are: their momentum is cleared here
+        and their gradients before every step (zero_frozen_grads), so every update of theirs is
+        exactly 0 while the calls, and so every other member's arithmetic, stay the same."""
+        for i in rows:
+            for start, n in self.member_ranges[i]:
+                self.exp_avg[start:start + n] = 0.0
+        self.frozen = torch.tensor(sorted(set(self.frozen.tolist()) | set(rows)), dtype=torch.long)
+
+    def zero_frozen_grads(self) -> None:
+        if len(self.frozen):
+            for g in self.grad_views:
+                g.index_fill_(0, self.frozen, 0.0)
+
+    def step(self) -> None:
+        """One Adam step of every member from the current contents of `grad` (torch's fused Adam
+        kernel: one pass over the buffer; FlatAdam's arithmetic up to rounding)."""
+        self.zero_frozen_grads()
+        self.steps.add_(1)
+        for lr, params, grads, avgs, sqs in self.groups:
+            torch._fused_adam_(params, grads, avgs, sqs, [], [self.steps] * len(params), lr=lr, beta1=BETAS[0],
+                               beta2=BETAS[1], weight_decay=0.0, eps=EPS, amsgrad=False, maximize=False)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"param": self.param.clone(), "exp_avg": self.exp_avg.clone(), "exp_avg_sq": self.exp_avg_sq.clone(),
+                "steps": self.steps.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        for name in ("param", "exp_avg", "exp_avg_sq", "steps"):
+            getattr(self, name).copy_(state[name])
+        self.frozen = torch.zeros(0, dtype=torch.long)
+
+
+class PackedParticleTrainer:
+    """K particle cells as one batched model; train_step() is one update of every member.
+
+    specs, paired, unpaired, agents: one entry per member, as the single-cell trainer gets them
+    (asp_dist.training.cell.run_cell: P and U from the member's base, agents freshly initialised).
+    The agents' parameters are re-pointed into the pack's buffer. After training, member i's
+    `members[i].agents` holds its trained weights, `loss_columns(i)` its row's loss_* columns and
+    `members[i].curve` its learning curve (probes: set `members[i].probe` as run_cell sets
+    Trainer.probe)."""
+
+    def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
+                 agents: Sequence[ParticleAgents]):
+        specs = [s.resolved() for s in specs]
+        if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
+            raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
+        for s in specs:
+            if not supports(s):
+                raise ValueError(f"{s.cell_id} cannot be packed (particle cells of the fused trainer's knobs only)")
+            if pack_key(s) != pack_key(specs[0]):
+                diff = [n for n in SHARED if getattr(s, n) != getattr(specs[0], n)]
+                raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+        domain = get_domain("particles")
+        s0 = specs[0]
+        self.M, self.B, self.T = len(specs), s0.batch_size, s0.particles_episode_len
+        self.Kr, self.D, self.train_steps = s0.particles_rollout_len, s0.particles_message_dim, s0.train_steps
+        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
+        M, B, T, D = self.M, self.B, self.T, self.D
+
+        # ---- members: weights, generators and self-play state exactly as Trainer.__init__ -----------
+        self.members: list[Member] = []
+        discs: list[torch.nn.Module] = []
+        states: list[Tensors] = []
+        for spec, p, a in zip(specs, paired, agents):
+            weights = method_weights(spec)
+            gen = torch.Generator().manual_seed(spec.seed_for("train"))
+            disc = None
+            if weights.needs_adversary:
+                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
+                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
+                (disc,) = adv.discs.values()
+                discs.append(disc)
+            states.append(domain.init_self_play(spec, a, gen) if weights.needs_self_play else {})
+            n = len(p["state"]) if weights.paired != 0.0 else 0
+            terms = (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n else ()) \
+                + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ())
+            self.members.append(Member(spec, weights, a, disc, gen, n, terms + ("total",)))
+        mem = self.members
+        self.any_self_play = any(m.self_play for m in mem)
+        self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]
+        self.Ma = len(self.adv_rows)
+        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
+        self.all_adv = self.Ma == M
+
+        # ---- stacked parameters: speaker, listener, critic; discriminators of the ASP members --------
+        self.net = _StackedParams(agents, [m.spec.lr for m in mem])
+        (self.sw1, self.sb1, self.sw2, self.sb2, self.lw1, self.lb1, self.lw2, self.lb2,
+         self.cw1, self.cb1, self.cw2, self.cb2) = self.net.views
+        (self.g_sw1, self.g_sb1, self.g_sw2, self.g_sb2, self.g_lw1, self.g_lb1, self.g_lw2, self.g_lb2,
+         self.g_cw1, self.g_cb1, self.g_cw2, self.g_cb2) = self.net.grad_views
+        self.sw1T, self.sw2T, self.lw1T, self.lw2T, self.cw1T, self.cw2T = (
+            w.transpose(1, 2) for w in (self.sw1, self.sw2, self.lw1, self.lw2, self.cw1, self.cw2))
+        self.dnet = None
+        if self.Ma:
+            self.dnet = _StackedParams(discs, [mem[i].spec.disc_lr for i in self.adv_rows])
+            slopes = {m.negative_slope for m in discs[0].net if isinstance(m, torch.nn.LeakyReLU)}
+            self.slope = slopes.pop() if slopes else 0.01
+            v, g = self.dnet.views, self.dnet.grad_views
+            self.dlayers = [(v[2 * i], v[2 * i].transpose(1, 2), v[2 * i + 1], g[2 * i], g[2 * i + 1])
+                            for i in range(len(v) // 2)]
+
+        # ---- per-member constants of the update (the fused trainer's Python scalars) -----------------
+        n_max = max(m.n_paired for m in mem)
+        self.n = n_max
+        N = B * self.Kr
+        self.paired_x, self.paired_msg = torch.zeros(M, n_max, 2), torch.zeros(M, n_max, D)
+        self.paired_onehot = torch.zeros(M, n_max, N_ACTIONS)
+        self.action_ids = torch.arange(N_ACTIONS)
+        self.row_mask = torch.zeros(M, n_max)
+        pw, pmw = torch.zeros(M, n_max, 1), torch.zeros(M, n_max, 1)
+        for i, (m, p) in enumerate(zip(mem, paired)):
+            k = m.n_paired
+            if k:
+                self.paired_x[i, :k] = p["state"] * (1.0 / BOX)
+                self.paired_msg[i, :k] = p["message"]
+                self.paired_onehot[i, :k] = F.one_hot(p["action"], N_ACTIONS).float()
+                self.row_mask[i, :k] = 1.0
+                pw[i, :k] = m.weights.paired / k
+                pmw[i, :k] = 2.0 * m.weights.paired / (k * D)
+        self.pw, self.pmw = pw, pmw
+        self.inv_n = _column([1.0 / max(m.n_paired, 1) for m in mem])
+        self.inv_nD = _column([1.0 / (max(m.n_paired, 1) * D) for m in mem])
+        sp = [m.spec for m in mem]
+        self.sp_scale = _column([m.weights.self_play / N for m in mem], dims=3)
+        self.ent3 = _column([s.particles_entropy for s in sp], dims=3)
+        self.ent2 = _column([s.particles_entropy for s in sp])
+        self.vc2 = _column([s.particles_value_coef for s in sp])
+        self.dv_scale = _column([-2.0 * s.particles_value_coef * m.weights.self_play / N for s, m in zip(sp, mem)])
+        self.gamma = _column([s.particles_gamma for s in sp])
+        self.w64 = {name: _column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
+                    for name in ("self_play", "paired")}
+        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
+
+        # ---- self-play state: positions (M, B, 2), targets, the shared episode clock -----------------
+        self.pos = torch.zeros(M, B, 2)
+        for i, st in enumerate(states):
+            if st:
+                self.pos[i] = st["pos"]
+        self.target = torch.stack([target_for(s) for s in sp]).view(M, 1, 2)
+        t0 = next((st["t"] for st in states if st), torch.arange(B) * T // B)
+        # Envs advance one step per rollout step, so the clock at env step g is (t0 + g) mod T for
+        # every member; tfeat[φ] is critic_features' time column and done[φ] the episode ends at phase φ.
+        clock = [(t0 + ph) % T for ph in range(T)]
+        self.tfeat = [((T - t).unsqueeze(1) * (1.0 / T)).expand(M, B, 1) for t in clock]
+        self.done = [(t + 1) >= T for t in clock]
+        self.done_any = [bool(d.any()) for d in self.done]
+        self.done3 = [d.view(1, B, 1) for d in self.done]
+
+        # ---- discriminator data --------------------------------------------------------------------
+        if self.Ma:
+            ub = self.ub
+            sizes = [len(unpaired[i]["message"]) for i in self.adv_rows]
+            self.u_sizes, u_max = sizes, max(sizes)
+            U = torch.zeros(self.Ma, u_max, D)
+            for a, i in enumerate(self.adv_rows):
+                U[a, :sizes[a]] = unpaired[i]["message"]
+            self.U = U.view(self.Ma * u_max, D)
+            self.u_offset = (torch.arange(self.Ma) * u_max).view(1, self.Ma, 1)
+            self.disc_labels = torch.cat([torch.ones(ub), torch.zeros(N)]).expand(self.Ma, ub + N)
+            self.disc_scale = torch.cat([torch.full((ub,), 1.0 / ub), torch.full((N,), 1.0 / N)])
+            kinds = [mem[i].spec.adversary_loss for i in self.adv_rows]
+            self.ns_float = _column([k == "non_saturating" for k in kinds])
+            self.ns = self.ns_float.bool()
+            self.any_ns = any(k == "non_saturating" for k in kinds)
+            self.adv_spread = torch.zeros(M, N, D)
+
+        # ---- bookkeeping, as Trainer's -------------------------------------------------------------
+        self.step = 0
+        self.window_start = int(0.9 * self.train_steps)
+        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
+        self.curve_window = max(1, self.curve_every // 10)
+        self.loss_sums = torch.zeros(M, len(LOSS_TERMS), dtype=torch.float64)
+        self.loss_count = 0
+        self.curve_sums = torch.zeros(M, len(TERMS), dtype=torch.float64)
+        self.curve_count = 0
+        self.active = [True] * M
+        self.chunk_start = self.chunk_end = 0
+        self.chunk_gen_states: list[torch.Tensor] = []
+        self._alloc_draws()
+
+    # ---- random draws, made ahead per member in the single-cell order ---------------------------
+    def _alloc_draws(self) -> None:
+        M, B, Kr = self.M, self.B, self.Kr
+        self.E = torch.ones(CHUNK * Kr, M, B, N_ACTIONS)    # Exp(1) per action (1 for members without self-play)
+        self.respawn_u = torch.zeros(CHUNK * Kr, M, B, 2)  # uniforms of spawn()
+        self.real_idx = torch.zeros(CHUNK * self.disc_steps, self.Ma, self.ub, dtype=torch.long)
+        if self.Ma:
+            self.lam_coef = torch.zeros(CHUNK, self.Ma, 1)      # d(λ1·L_u)/d(logit) factor, float32
+            self.lam_now = torch.zeros(CHUNK, self.Ma, dtype=torch.float64)  # λ1 of the update (for 'total')
+
+    def _draw_chunk(self) -> None:
+        """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member:
+        per rollout step the Exp(1) of torch.multinomial and, when episodes end, spawn()'s uniforms;
+        then the disc_steps batches of indices into U. The same calls the fused trainer makes."""
+        start, S = self.step, min(CHUNK, self.train_steps - self.step)
+        Kr, B, T, ub, ds = self.Kr, self.B, self.T, self.ub, self.disc_steps
+        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
+        self.chunk_start, self.chunk_end = start, start + S
+        adv_slot = {i: a for a, i in enumerate(self.adv_rows)}
+        for i, m in enumerate(self.members):
+            if not m.self_play:  # PC draws nothing
+                continue
+            gen = m.gen
+            exps, unis = self.E[:S * Kr, i].unbind(0), self.respawn_u[:S * Kr, i].unbind(0)
+            idx = self.real_idx[:S * ds, adv_slot[i]].unbind(0) if m.adversary else ()
+            high = m.spec.unpaired_size
+            for s in range(S):
+                for k in range(Kr):
+                    j = s * Kr + k
+                    exps[j].exponential_(generator=gen)
+                    if self.done_any[((start + s) * Kr + k) % T]:
+                        torch.rand(B, 2, generator=gen, out=unis[j])
+                for d in range(ds if m.adversary else 0):
+                    torch.randint(high, (ub,), generator=gen, out=idx[s * ds + d])
+        self.respawn = (self.respawn_u[:S * Kr] * 2 - 1) * BOX
+        if self.Ma:
+            self.real_flat = (self.real_idx[:S * ds].view(S, ds, self.Ma, ub) + self.u_offset.unsqueeze(0)).view(
+                S * ds, self.Ma * ub)
+            steps = torch.arange(start, start + S, dtype=torch.float64)
+            for a, i in enumerate(self.adv_rows):
+                spec, w = self.members[i].spec, self.members[i].weights
+                if spec.lambda_unpaired_schedule == "constant":
+                    factor = torch.ones(S, dtype=torch.float64)
+                else:  # lambda_factor, vectorised (the same float64 arithmetic)
+                    ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
+                    factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
+                now = w.unpaired * factor
+                self.lam_now[:S, a] = now
+                N = B * Kr
+                self.lam_coef[:S, a, 0] = (now / N if spec.adversary_loss == "non_saturating" else -now / N).float()
+
+    # ---- forward pieces (member-stacked) --------------------------------------------------------
+    def _speak(self, x):
+        h = torch.baddbmm(self.sb1, x, self.sw1T).relu_()
+        return h, torch.baddbmm(self.sb2, h, self.sw2T).tanh_()
+
+    def _listen(self, m):
+        h = torch.baddbmm(self.lb1, m, self.lw1T).relu_()
+        return h, torch.baddbmm(self.lb2, h, self.lw2T).log_softmax(-1)
+
+    def _rollout(self, j: int) -> _Rollout:
+        """The fused trainer's rollout for every member; the paired rows join step 0."""
+        M, B, Kr, T, n = self.M, self.B, self.Kr, self.T, self.n
+        pos = self.pos
+        spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp, acts, feats, rews, dones = ([] for _ in range(10))
+        for k in range(Kr):
+            phase = (self.step * Kr + k) % T
+            x = pos * (1.0 / BOX)
+            xs = torch.cat([x, self.paired_x], 1) if k == 0 and n else x
+            h, m = self._speak(xs)
+            li = torch.cat([m[:, :B], self.paired_msg], 1) if k == 0 and n else m
+            hl, logp = self._listen(li)
+            a = (logp[:, :B].exp() / self.E[j * Kr + k]).argmax(-1)  # = torch.multinomial(probs, 1, generator)
+            feats.append(torch.cat([x, self.tfeat[phase]], 2))
+            pos, r = env_step(pos, a, self.target)
+            if self.done_any[phase]:
+                pos = torch.where(self.done3[phase], self.respawn[j * Kr + k], pos)
+            for store, value in ((spk_x, xs), (spk_h, h), (spk_m, m), (lis_in, li), (lis_h, hl), (lis_logp, logp)):
+                store.append(value)
+            acts.append(a)
+            rews.append(r)
+            dones.append(self.done[phase])
+        self.pos = pos
+        feats.append(torch.cat([pos * (1.0 / BOX), self.tfeat[(self.step * Kr + Kr) % T]], 2))
+        feats = torch.cat(feats, 1)
+        hc = torch.baddbmm(self.cb1, feats, self.cw1T).relu_()
+        values = torch.baddbmm(self.cb2, hc, self.cw2T).view(M, -1)
+        ret = values[:, Kr * B:]
+        returns = []
+        for k in reversed(range(Kr)):
+            ret = rews[k] * REWARD_SCALE + self.gamma * ret.masked_fill(dones[k], 0.0)
+            returns.append(ret)
+        cat = (lambda xs: xs[0] if len(xs) == 1 else torch.cat(xs, 1))
+        return _Rollout(cat(spk_x), cat(spk_h), cat(spk_m), cat(lis_in), cat(lis_h), cat(lis_logp), cat(acts),
+                        values[:, :Kr * B], cat(returns[::-1]), feats[:, :Kr * B], hc[:, :Kr * B])
+
+    # ---- one update of every member -------------------------------------------------------------
+    def in_curve_window(self) -> bool:
+        return (-self.step - 1) % self.curve_every < self.curve_window
+
+    def recording(self) -> bool:
+        return self.step >= self.window_start or self.in_curve_window()
+
+    @torch.no_grad()
+    def train_step(self) -> None:
+        if self.step >= self.train_steps:
+            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
+        if self.step >= self.chunk_end:
+            self._draw_chunk()
+        j = self.step - self.chunk_start
+        M, B, Kr, n = self.M, self.B, self.Kr, self.n
+        record = self.recording()
+        vals: dict[str, torch.Tensor] | None = {} if record else None
+
+        # ---- 1. forward: rollout rows (B per step) with the paired rows after step 0's ------------
+        if self.any_self_play:
+            ro = self._rollout(j)
+            x, h, m, li, hl, logp = (ro.speaker_in, ro.speaker_hidden, ro.message, ro.listener_in,
+                                     ro.listener_hidden, ro.logp)
+        else:
+            x, li = self.paired_x, self.paired_msg
+            (h, m), (hl, logp) = self._speak(x), self._listen(li)
+        probs = logp.exp()
+
+        # ---- d(loss)/d(logits) of the listener and d(loss)/d(message) of the speaker --------------
+        dz = torch.empty_like(logp)
+        N = B * Kr if self.any_self_play else 0
+        sp_rows = [slice(0, B), slice(B + n, B + n + N - B)] if N else []
+        p_rows = slice(B, B + n) if N else slice(0, n)
+        if N:
+            sp_logp, sp_probs = self._rows(logp, sp_rows), self._rows(probs, sp_rows)
+            td = ro.returns - ro.values
+            onehot = (ro.actions.unsqueeze(2) == self.action_ids).float()  # F.one_hot without its checks
+            plogp = sp_probs * sp_logp
+            dz_sp = ((sp_probs - onehot) * td.unsqueeze(2)
+                     + self.ent3 * (plogp - sp_probs * plogp.sum(2, keepdim=True))) * self.sp_scale
+            self._put_rows(dz, sp_rows, dz_sp)
+            dv = td * self.dv_scale
+            if record:
+                vals["self_play"] = (-(sp_logp * onehot).sum(2) * td + self.vc2 * td * td
+                                     + self.ent2 * plogp.sum(2)).mean(1)
+        if n:
+            dz[:, p_rows] = (probs[:, p_rows] - self.paired_onehot) * self.pw
+
+        # Listener backward (its input grad matters for rollout rows only: paired inputs are data).
+        dhl = _threshold_backward(_lin_back(dz, hl, self.lw2, self.g_lw2, self.g_lb2), hl, 0.0)
+        dm = _lin_back(dhl, li, self.lw1, self.g_lw1, self.g_lb1)
+        if n:
+            diff = m[:, p_rows] - self.paired_msg
+            dm[:, p_rows] = diff * self.pmw
+            if record:
+                # MSE over each member's own rows minus their mean log-likelihood (padded rows masked).
+                mse = ((diff * diff).sum(2) * self.row_mask).sum(1, keepdim=True).mul_(self.inv_nD)
+                loglik = ((logp[:, p_rows] * self.paired_onehot).sum(2) * self.row_mask).sum(1, keepdim=True)
+                vals["paired"] = (mse - loglik.mul_(self.inv_n)).view(-1)
+
+        # ---- 2. ASP: discriminator step, then the model's adversarial gradient -------------------
+        if self.Ma:
+            fake = self._rows(m, sp_rows)
+            d_adv = self._adversarial(fake if self.all_adv else fake.index_select(0, self.adv_idx), j, vals)
+            if not self.all_adv:  # spread the ASP members' rows over the pack (the others' stay 0)
+                d_adv = self.adv_spread.index_copy_(0, self.adv_idx, d_adv)
+            for rows, part in zip(sp_rows, (d_adv[:, :B], d_adv[:, B:])):
+                if rows.stop > rows.start:
+                    dm[:, rows] += part
+
+        # Speaker backward.
+        dh = _threshold_backward(_lin_back(_tanh_backward(dm, m), h, self.sw2, self.g_sw2, self.g_sb2), h, 0.0)
+        _lin_back(dh, x, self.sw1, self.g_sw1, self.g_sb1, need_input_grad=False)
+        if N:  # critic backward
+            hc = ro.critic_hidden
+            dv3 = dv.unsqueeze(2)
+            torch.bmm(dv3.transpose(1, 2), hc, out=self.g_cw2)
+            torch.sum(dv, 1, keepdim=True, out=self.g_cb2)
+            dhc = _threshold_backward(dv3 * self.cw2, hc, 0.0)
+            _lin_back(dhc, ro.critic_in, self.cw1, self.g_cw1, self.g_cb1, need_input_grad=False)
+
+        # ---- 3. one Adam step for every member ----------------------------------------------------
+        # A member whose gradient is not finite is frozen before its Adam step (one reduction over
+        # the buffer per update; frozen members' gradients are zeroed first, so it sees new failures only).
+        self.net.zero_frozen_grads()
+        if not bool(torch.isfinite(self.net.grad.sum())):
+            self._freeze([i for i in range(M) if self.active[i]
+                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
+                         "non-finite loss gradient")
+        self.net.step()
+        if record:
+            self._record(vals, j)
+        self.step += 1
+        self._finish_curve_point()
+
+    def _adversarial(self, fake: torch.Tensor, j: int, vals: dict | None) -> torch.Tensor:
+        """disc_steps BCE steps of each ASP member's discriminator, then λ1·d(L_u)/d(fake) through
+        the updated one. `fake`: the ASP members' rollout messages (Ma, N, D)."""
+        Ma, ub, D = self.Ma, self.ub, self.D
+        for k in range(self.disc_steps):
+            real = self.U.index_select(0, self.real_flat[j * self.disc_steps + k]).view(Ma, ub, D)
+            logits, inputs = self._disc_forward(torch.cat([real, fake], 1))
+            self._disc_backward((torch.sigmoid(logits) - self.disc_labels) * self.disc_scale, inputs,
+                                params=True, input_grad=False)
+            if vals is not None:  # as the reference: the last step's loss, the first step's accuracies
+                vals["disc"] = F.binary_cross_entropy_with_logits(logits, self.disc_labels, reduction="none") \
+                    .mul(self.disc_scale).sum(1)
+                if k == 0:
+                    real_l, fake_l = logits[:, :ub], logits[:, ub:]
+                    vals["disc_acc_real"] = (real_l > 0).float().mean(1)
+                    vals["disc_acc_fake"] = (fake_l < 0).float().mean(1)
+                    vals["d_fake"] = torch.sigmoid(fake_l).mean(1)
+            self.dnet.step()
+        logits, inputs = self._disc_forward(fake)
+        sig = torch.sigmoid(logits)
+        coef = self.lam_coef[j]
+        dlogits = (sig - self.ns_float) * coef if self.any_ns else sig * coef  # neg_bce: σ·(-λ/N); else (σ-1)·λ/N
+        if vals is not None:
+            vals["unpaired"] = torch.where(self.ns.view(-1), F.softplus(-logits).mean(1), -F.softplus(logits).mean(1))
+        return self._disc_backward(dlogits, inputs, params=False, input_grad=True)
+
+    def _disc_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        inputs = [x]
+        last = len(self.dlayers) - 1
+        for i, (_, wT, b, _, _) in enumerate(self.dlayers):
+            x = torch.baddbmm(b, x, wT)
+            if i < last:
+                x = F.leaky_relu(x, self.slope)
+                inputs.append(x)
+        return x.view(x.shape[0], -1), inputs
+
+    def _disc_backward(self, dlogits: torch.Tensor, inputs: list[torch.Tensor], params: bool, input_grad: bool):
+        dy = dlogits.unsqueeze(2)
+        for i in reversed(range(len(self.dlayers))):
+            w, _, _, gw, gb = self.dlayers[i]
+            dy = _lin_back(dy, inputs[i], w, gw if params else None, gb if params else None, i > 0 or input_grad)
+            if i > 0:
+                dy = _leaky_relu_backward(dy, inputs[i], self.slope, True)
+        return dy if input_grad else None
+
+    # ---- failures --------------------------------------------------------------------------------
+    def _freeze(self, rows: list[int], why: str) -> None:
+        """Mark members failed and freeze their parameters (and their discriminators) for good."""
+        for i in rows:
+            self.active[i] = False
+            self.members[i].failed_step = self.step
+            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}; member frozen"
+        self.net.freeze(rows)
+        if self.dnet is not None:
+            self.dnet.freeze([a for a, i in enumerate(self.adv_rows) if i in rows])
+
+    # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
+    def _record(self, vals: dict[str, torch.Tensor], j: int) -> None:
+        V = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        for name, v in vals.items():
+            if name in ("self_play", "paired"):
+                V[:, _COL[name]] = v
+            else:  # ASP members only
+                V[self.adv_idx, _COL[name]] = v.double()
+        V.masked_fill_(~self.present, 0.0)  # a term the member does not have counts 0, as in the fused trainer
+        total = self.w64["self_play"] * V[:, 0] + self.w64["paired"] * V[:, 1]
+        if self.Ma:
+            total[self.adv_idx] += self.lam_now[j] * V[self.adv_idx, 2]
+        V[:, _COL["total"]] = total
+        if not bool(torch.isfinite(V).all()):
+            self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
+                         "non-finite loss")
+        if self.step >= self.window_start:
+            self.loss_sums += V[:, :len(LOSS_TERMS)]
+            self.loss_count += 1
+        if self.in_curve_window():
+            self.curve_sums += V
+            self.curve_count += 1
+
+    def _finish_curve_point(self) -> None:
+        if self.step % self.curve_every and self.step != self.train_steps:
+            return
+        n, sums = self.curve_count, self.curve_sums.tolist()
+        for i, m in enumerate(self.members):
+            if m.failed:
+                continue
+            point = {"step": float(self.step),
+                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
+            if n:
+                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][_COL[k]] / n for k in m.terms})
+            index = len(m.curve)
+            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
+                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
+            m.curve.append(point)
+        self.curve_sums.zero_()
+        self.curve_count = 0
+
+    def loss_columns(self, i: int) -> dict[str, float | None]:
+        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
+        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to continue bit for bit: the draws of the current chunk are re-made from the
+        generators' states at its start."""
+        return {
+            "step": self.step, "net": self.net.state_dict(),
+            "dnet": self.dnet.state_dict() if self.dnet is not None else None,
+            "pos": self.pos.clone(), "chunk_start": self.chunk_start,
+            "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
+            else [m.gen.get_state() for m in self.members],
+            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
+            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
+            "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
+                        for m in self.members],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["net"])
+        if self.dnet is not None:
+            self.dnet.load_state_dict(state["dnet"])
+        self.pos = state["pos"].clone()
+        self.loss_sums.copy_(state["loss_sums"])
+        self.curve_sums.copy_(state["curve_sums"])
+        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
+        for m, saved in zip(self.members, state["members"]):
+            m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
+        for m, g in zip(self.members, state["gens"]):
+            m.gen.set_state(g)
+        self.active = [not m.failed for m in self.members]
+        failed = [i for i, a in enumerate(self.active) if not a]
+        self.net.freeze(failed)
+        if self.dnet is not None:
+            self.dnet.freeze([a for a, i in enumerate(self.adv_rows) if i in failed])
+        self.step = self.chunk_start = self.chunk_end = state["chunk_start"]
+        if state["step"] > self.step:  # re-make the chunk's draws, continue inside it
+            self._draw_chunk()
+        self.step = state["step"]
+
+    # ---- helpers -------------------------------------------------------------------------------
+    @staticmethod
+    def _rows(t: torch.Tensor, rows: list[slice]) -> torch.Tensor:
+        parts = [t[:, r] for r in rows if r.stop > r.start]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+
+    @staticmethod
+    def _put_rows(dst: torch.Tensor, rows: list[slice], src: torch.Tensor) -> None:
+        offset = 0
+        for r in rows:
+            size = r.stop - r.start
+            if size > 0:
+                dst[:, r] = src[:, offset:offset + size]
+                offset += size
+
+
+# ---- whole cells ---------------------------------------------------------------------------------
+def _generator(state: torch.Tensor) -> torch.Generator:
+    gen = torch.Generator()
+    gen.set_state(state)
+    return gen
+
+
+@dataclass
+class PackedResult:
+    """One member's outcome: its result row (as run_cell's) and curve, or why it failed."""
+
+    spec: CellSpec
+    row: dict[str, Any] | None = None
+    curve: list[dict[str, float]] | None = None
+    error: str | None = None
+
+
+def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None, curves: bool = False,
+             progress: ProgressFn | None = None) -> list[PackedResult]:
+    """run_cell for K packable cells at once: bases, data, one packed training, per-member evaluation.
+
+    bases   trained bases by base_key (as the sweep's base cache hands them out); a missing one is
+            trained here, once per key (its time goes to the first member of that base)
+    curves  record each member's learning curve with probes, as run_cell(curve=[...])
+
+    Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
+    eval are its own; train is the pack's training time divided by the number of members."""
+    specs = [s.resolved() for s in specs]
+    domain = get_domain("particles")
+    bases = dict(bases or {})
+    results = [PackedResult(spec) for spec in specs]
+    timers = [PhaseTimer() for _ in specs]
+    reused = [True] * len(specs)
+    for i, spec in enumerate(specs):
+        if spec.base_key in bases:
+            continue
+        try:
+            with timers[i].phase("base"):
+                bases[spec.base_key] = train_accepted_base(spec, progress)
+            reused[i] = False
+        except BaseRejected as exc:
+            bases[spec.base_key] = None
+            results[i].error = str(exc)
+    live = [i for i, spec in enumerate(specs) if bases.get(spec.base_key) is not None]
+    for i in range(len(specs)):
+        if i not in live and results[i].error is None:
+            results[i].error = f"base {specs[i].base_key} rejected (see the first cell of that base)"
+    if not live:
+        return results
+
+    # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
+    paired, unpaired, agents, data_cache = {}, {}, {}, {}
+    for i in live:
+        spec, base = specs[i], bases[specs[i].base_key]
+        weights = method_weights(spec)
+        with timers[i].phase("data"):
+            key = (spec.base_key, spec.seed_for("data"), spec.paired)
+            if key not in data_cache:
+                gen = torch.Generator().manual_seed(spec.seed_for("data"))
+                p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}
+                data_cache[key] = (p, gen.get_state(), {})
+            p, after_p, u_cache = data_cache[key]
+            paired[i], unpaired[i] = p, {}
+            if weights.needs_adversary:
+                if spec.unpaired_size not in u_cache:
+                    u_cache[spec.unpaired_size] = domain.unpaired(
+                        spec, base.agents, spec.unpaired_size, _generator(after_p))
+                unpaired[i] = u_cache[spec.unpaired_size]
+            agents[i] = domain.new_agents(spec, spec.seed_for("init"))
+
+    wall, cpu = time.perf_counter(), time.process_time()
+    trainer = PackedParticleTrainer([specs[i] for i in live], [paired[i] for i in live],
+                                    [unpaired[i] for i in live], [agents[i] for i in live])
+    paired.clear(), unpaired.clear(), data_cache.clear()  # the pack holds its own (padded) copies
+    if curves:
+        for i, member in zip(live, trainer.members):
+            member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
+    report_every = max(1, trainer.train_steps // 100)
+    while trainer.step < trainer.train_steps:
+        trainer.train_step()
+        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
+            progress("train", trainer.step, trainer.train_steps, {})
+    share_wall = (time.perf_counter() - wall) / len(live)
+    share_cpu = (time.process_time() - cpu) / len(live)
+
+    for k, (i, member) in enumerate(zip(live, trainer.members)):
+        if member.failed:
+            results[i].error = member.error
+            continue
+        spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
+        timer.seconds["time_train_wall_s"] += share_wall
+        timer.seconds["time_train_cpu_s"] += share_cpu
+        with timer.phase("eval"):
+            member.agents.eval()
+            metrics = domain.evaluate(spec, base.agents, member.agents,
+                                      torch.Generator().manual_seed(spec.seed_for("eval")))
+            figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
+        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
+                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
+                                   resumed_from=None)
+        results[i].curve = member.curve if curves else None
+        if progress is not None:
+            progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
+    return results
