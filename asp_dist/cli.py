@@ -192,8 +192,10 @@ DASHBOARD_MODULES = ("aiohttp", "aiohttp_cors", "grpc", "opencensus", "opentelem
 def check_run_flags(args: argparse.Namespace) -> None:
     """The flags of sweep and resume that need no grid, refused before anything is read or written."""
     from asp_dist.sweep.ledger import check_run_options, parse_address
+    from asp_dist.sweep.packing import check_packing
 
     check_run_options(args.workers, args.max_failures, args.checkpoint_every, args.connect_timeout)
+    check_packing(args.pack, args.pack_size)
     if args.address is not None and not args.address.strip():
         raise SpecError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     if args.address is not None:
@@ -225,7 +227,7 @@ def check_run_flags(args: argparse.Namespace) -> None:
 def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return dict(results=args.results, workers=args.workers, address=args.address, max_failures=args.max_failures,
                 checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir, dashboard=args.dashboard,
-                connect_timeout_s=args.connect_timeout)
+                connect_timeout_s=args.connect_timeout, pack=args.pack, pack_size=args.pack_size)
 
 
 def _interruptible(args: argparse.Namespace, name_of, run) -> int:
@@ -283,7 +285,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         specs = expand(args.space)
         space = space_file(args.space).stem
         name.append(args.name if args.name is not None else space)
-        check_can_start(args.results, name[0], specs, space)
+        check_can_start(args.results, name[0], specs, space, args.pack, args.pack_size)
         check_data(specs)
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
@@ -299,7 +301,8 @@ def cmd_resume(args: argparse.Namespace) -> int:
         from asp_dist.sweep.ledger import check_address, check_can_resume
 
         check_run_flags(args)
-        specs = check_can_resume(args.results, args.name)  # an unknown or broken sweep too, before the Ray import
+        # an unknown or broken sweep too, and a packing other than its own, before the Ray import
+        specs = check_can_resume(args.results, args.name, args.pack, args.pack_size)
         check_data(specs)
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
@@ -547,6 +550,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "within this time (default 20)")
     p.add_argument("--dashboard", action="store_true",
                    help="start the embedded Ray's dashboard, on 127.0.0.1 only (default: none)")
+    p.add_argument("--pack", default=None, metavar="cell|trial|method",
+                   help="train cells that share tensor shapes as one batched model per Tune trial: 'trial' packs "
+                        "the cells of one trial, 'method' those of one method across trials; 'cell' (the default "
+                        "of a new sweep) runs one cell per trial. Fixed when a sweep starts; resume keeps it")
+    p.add_argument("--pack-size", type=int, default=None, metavar="N",
+                   help="at most N cells per pack (default 21); larger groups split deterministically")
 
 
 def build_parser() -> argparse.ArgumentParser:

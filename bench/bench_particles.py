@@ -29,20 +29,25 @@ from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402
+from asp_dist.training.fast import choose_trainer  # noqa: E402
+from asp_dist.training.fast.particles import FusedParticleTrainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
 
 def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) -> list[float]:
-    """engine: 'fused' (the domain's hand-derived trainer, what cells run) or 'autograd' (the reference)."""
+    """engine: 'fused' (the hand-derived trainer choose_trainer picks: what cells run) or 'autograd' (the reference)."""
     domain = get_domain(spec.domain)
     data_gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, data_gen)
     weights = method_weights(spec)
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
     agents = domain.new_agents(spec, 1)
-    trainer = (domain.make_trainer(spec, agents, paired, unpaired, weights) if engine == "fused" else None) \
-        or Trainer(spec, domain, agents, paired, unpaired, weights)
+    if engine == "fused":  # what run_cell runs: the fused trainer wherever it implements the spec's knobs
+        trainer = choose_trainer(spec, domain, agents, paired, unpaired, weights)
+        assert isinstance(trainer, FusedParticleTrainer), f"{spec.cell_id}: no fused trainer for these knobs"
+    else:
+        trainer = Trainer(spec, domain, agents, paired, unpaired, weights)
     for _ in range(100):  # warm-up
         trainer.train_step()
     times = []

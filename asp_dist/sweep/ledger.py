@@ -35,6 +35,7 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
 from asp_dist.spec import CellSpec
+from asp_dist.sweep.packing import MANIFEST_KEY, Packing, resolve_packing
 from asp_dist.sweep.spaces import grid_hash
 
 SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
@@ -344,18 +345,21 @@ def lock_holder(sweep_dir: AnyPath) -> str | None:
 
 
 # ---- grid (manifest) -----------------------------------------------------------------------------
-def new_manifest(name: str, space: str, specs: list[CellSpec]) -> dict[str, Any]:
-    """The manifest of a new sweep: its grid as cell ids and resolved specs, and the grid's hash."""
+def new_manifest(name: str, space: str, specs: list[CellSpec], packing: Packing | None = None) -> dict[str, Any]:
+    """The manifest of a new sweep: its grid as cell ids and resolved specs, the grid's hash, and how its
+    cells are grouped into Tune trials (asp_dist.sweep.packing; fixed for the sweep's life)."""
     return {"name": name, "space": space, "grid_hash": grid_hash(specs), "cells": [s.cell_id for s in specs],
-            "specs": [s.to_dict() for s in specs], "asp_dist_version": __version__,
-            "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+            "specs": [s.to_dict() for s in specs], MANIFEST_KEY: (packing or Packing()).to_dict(),
+            "asp_dist_version": __version__, "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
-def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str) -> dict[str, Any]:
-    """The sweep's manifest (a new one if it has none); refuses a grid that differs from the stored one."""
+def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,
+                   packing: Packing | None = None) -> dict[str, Any]:
+    """The sweep's manifest (a new one, with `packing`, if it has none); refuses a grid that differs from
+    the stored one."""
     existing = store.read_manifest(sweep_dir)
     if existing is None:
-        return new_manifest(name, space, specs)
+        return new_manifest(name, space, specs, packing)
     digest, stored = grid_hash(specs), existing.get("grid_hash")
     if stored != digest:
         raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
@@ -405,23 +409,29 @@ def check_not_running(sweep_dir: AnyPath) -> None:
                          f"or use another --name")
 
 
-def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str) -> AnyPath:
+def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str,
+                    pack: str | None = None, pack_size: int | None = None) -> AnyPath:
     """Everything `sweep` refuses about where it would run, checked without writing: the name, the
-    results dir, a directory that is not a sweep, a sweep started with another grid, a running sweep.
-    The run checks them again under its lock (tune._run); this is the early, read-only answer."""
+    results dir, a directory that is not a sweep, a sweep started with another grid or packing, a
+    running sweep. The run checks them again under its lock (tune._run); this is the early, read-only
+    answer."""
     sweep_dir = sweep_dir_for(results, name)
     check_sweep_dir_readonly(sweep_dir)
-    if store.read_manifest(sweep_dir) is not None:
+    manifest = store.read_manifest(sweep_dir)
+    resolve_packing(pack, pack_size, manifest)
+    if manifest is not None:
         read_sweep(results, name)  # its manifest's shape
         check_manifest(sweep_dir, name, specs, space)
         check_not_running(sweep_dir)
     return sweep_dir
 
 
-def check_can_resume(results: str | AnyPath, name: str) -> list[CellSpec]:
+def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
+                     pack_size: int | None = None) -> list[CellSpec]:
     """Everything `resume` refuses, checked without writing; returns the grid's specs."""
     sweep_dir, manifest = read_sweep(results, name)
     specs = specs_from_manifest(manifest)
+    resolve_packing(pack, pack_size, manifest)
     check_sweep_dir_readonly(sweep_dir)
     check_not_running(sweep_dir)
     return specs

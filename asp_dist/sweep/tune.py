@@ -14,6 +14,11 @@ Flow of ``run_sweep`` / ``resume_sweep``:
 5. each trial gets its base from the shared cache, runs ``run_cell`` (checkpointing through
    ``tune.report(..., checkpoint=...)``) and writes its row through ``asp_dist.results.store``.
 
+With ``--pack trial|method`` (asp_dist.sweep.packing) a trial may instead train a *pack*: cells of one
+domain trained as one batched model (asp_dist.training.packed). The packs are a function of the grid
+and the packing stored in the manifest, so a resumed sweep rebuilds the same packs; a pack trains
+whole and writes only its members without a row, each as a cell would (row, curve, failure).
+
 A worker that dies is retried ``max_failures`` times from its last checkpoint; a cell that
 still fails (or fails deterministically, e.g. a base that never meets its bar) is recorded
 under ``failed/`` and the sweep goes on. ``resume`` retries failed cells.
@@ -68,8 +73,10 @@ from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep import ledger  # noqa: E402
 from asp_dist.sweep.base_cache import get_base  # noqa: E402
 from asp_dist.sweep.ledger import SweepResult  # noqa: E402
+from asp_dist.sweep.packing import Unit, check_packing, describe_units, make_units, resolve_packing  # noqa: E402
 from asp_dist.sweep.progress import SweepCounter  # noqa: E402
 from asp_dist.sweep.spaces import expand, space_file  # noqa: E402
+from asp_dist.training import packed  # noqa: E402
 from asp_dist.training.bases import BaseRejected  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402
 
@@ -87,39 +94,24 @@ RAY_SESSION_MIN_AGE_S = 300.0  # a younger session may belong to a Ray that is s
 log = logging.getLogger(__name__)
 
 
-# ---- the Tune trial: one cell ---------------------------------------------------------------------
+# ---- the Tune trial: one cell, or one pack of cells ---------------------------------------------
 def train_cell(config: dict[str, Any]) -> None:
-    """Function trainable. Must keep no state between calls: actors are reused across cells."""
+    """Function trainable. Must keep no state between calls: actors are reused across cells.
+
+    ``config["cell"]`` is one cell's config, or a pack's (it has a ``pack_id``: train_pack)."""
     torch.set_num_threads(1)
     config = config["cell"]
+    if "pack_id" in config:
+        train_pack(config)
+        return
     spec = CellSpec.from_dict(config["spec"])
     sweep_dir = as_path(config["sweep_dir"])
     cell_id = config["cell_id"]
     if store.is_done(sweep_dir, spec.domain, spec.method, cell_id):
         tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
         return
-    restore = None
-    checkpoint = tune.get_checkpoint()
-    if checkpoint is not None:
-        with checkpoint.as_directory() as d:
-            restore = torch.load(Path(d) / "state.pt", weights_only=False)
-
-    # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
-    # under the Ray temp dir (node-local scratch, pruned with its session).
-    staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
-
-    def save(state: dict) -> None:
-        # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
-        # written under a temp name and renamed, and removed once report() returns: Tune has copied
-        # it into the trial's storage by then.
-        staging.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=f"{cell_id}-", dir=staging) as d:
-            part = Path(d) / ".state.pt.part"
-            torch.save(state, part)
-            os.replace(part, Path(d) / "state.pt")
-            tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
-                        checkpoint=tune.Checkpoint.from_directory(d))
-
+    restore = _restored_state()
+    save = _checkpointer(sweep_dir, cell_id)
     try:
         base, _ = get_base(spec, store.bases_dir(sweep_dir))
         curve: list[dict[str, float]] = []
@@ -141,9 +133,118 @@ def train_cell(config: dict[str, Any]) -> None:
     tune.report({"cell_done": 1, "eval_mixed": float(row["eval_mixed"])})
 
 
+def _restored_state() -> dict | None:
+    """The state of the trial's last checkpoint (a restarted or restored trial), else None."""
+    checkpoint = tune.get_checkpoint()
+    if checkpoint is None:
+        return None
+    with checkpoint.as_directory() as d:
+        return torch.load(Path(d) / "state.pt", weights_only=False)
+
+
+def _checkpointer(sweep_dir: AnyPath, name: str):
+    """save(state): one checkpoint of the trial through tune.report."""
+    # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
+    # under the Ray temp dir (node-local scratch, pruned with its session).
+    staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
+
+    def save(state: dict) -> None:
+        # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
+        # written under a temp name and renamed, and removed once report() returns: Tune has copied
+        # it into the trial's storage by then.
+        staging.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=staging) as d:
+            part = Path(d) / ".state.pt.part"
+            torch.save(state, part)
+            os.replace(part, Path(d) / "state.pt")
+            tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
+                        checkpoint=tune.Checkpoint.from_directory(d))
+
+    return save
+
+
+def train_pack(config: dict[str, Any]) -> None:
+    """One pack (asp_dist.sweep.packing): its cells trained together by their domain's packed trainer.
+
+    The whole pack trains even when some members already have a row (so that every member's row is
+    the one an uninterrupted run writes); only members without a row are written. A restarted trial
+    continues from the pack's last checkpoint. Failures are per member, as a single cell's: a base
+    that never meets its bar, or a member that diverged, is recorded for that member only."""
+    specs = [CellSpec.from_dict(d).resolved() for d in config["specs"]]
+    sweep_dir = as_path(config["sweep_dir"])
+    pack_id = config["pack_id"]
+    todo = {s.cell_id for s in specs if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)}
+    if not todo:
+        tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
+        return
+    restore = _restored_state()
+    failures: dict[str, str] = {}
+    bases: dict[str, Any] = {}
+    for spec in specs:  # one base per key from the sweep's cache, as single cells get theirs
+        if spec.base_key in bases or spec.cell_id in failures:
+            continue
+        try:
+            bases[spec.base_key], _ = get_base(spec, store.bases_dir(sweep_dir))
+        except StorageError:
+            raise
+        except (SpecError, BaseRejected, MNISTError) as e:
+            why = f"{type(e).__name__}: {e}"
+            failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
+    live = [s for s in specs if s.cell_id not in failures]
+    composition = (pack_id, [s.cell_id for s in live])
+    if restore is not None and (restore.get("pack_id"), restore.get("cell_ids")) != composition:
+        restore = None  # another composition (a base was rejected or accepted since): start over
+    save = _checkpointer(sweep_dir, config["name"])
+    results = []
+    if live:
+        try:
+            results = packed.run_pack(live, bases=bases, curves=True, checkpoint=lambda state: save(
+                dict(state, pack_id=pack_id)), restore=restore, checkpoint_every_s=config["checkpoint_every_s"])
+        except StorageError:
+            raise
+        except (SpecError, BaseRejected, MNISTError) as e:
+            failures.update({s.cell_id: f"{type(e).__name__}: {e}" for s in live})
+    written = 0
+    for result in results:
+        spec = result.spec
+        if spec.cell_id not in todo:
+            continue  # a row written before (e.g. by the interrupted run of this pack): never rewritten
+        if result.row is None:
+            failures[spec.cell_id] = f"in pack {pack_id}: {result.error}"
+            continue
+        row = dict(result.row, pack=pack_id, ray_node_id=ray.get_runtime_context().get_node_id(),
+                   ray_version=ray.__version__)
+        store.write_curve(sweep_dir, row, result.curve or [])
+        written += store.write_row(sweep_dir, row, config["sweep_id"])
+        store.clear_failure(sweep_dir, spec.cell_id)
+    for spec in specs:
+        if spec.cell_id in failures and spec.cell_id in todo:
+            store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
+    tune.report({"cell_done": int(not failures), "cells_written": written, "cell_failed": len(failures)})
+
+
+def unit_config(unit: Unit, sweep_dir: AnyPath, sweep_id: str, checkpoint_every_s: float) -> dict[str, Any]:
+    """What a Tune trial gets: a cell's config (as before packs existed), or a pack's."""
+    common = {"sweep_dir": str(sweep_dir), "sweep_id": sweep_id, "checkpoint_every_s": checkpoint_every_s}
+    if unit.pack_id is None:
+        spec = unit.specs[0]
+        return {"spec": spec.to_dict(), "cell_id": spec.cell_id, **common}
+    return {"pack_id": unit.pack_id, "name": unit.name, "specs": [s.to_dict() for s in unit.specs],
+            "cell_ids": unit.cell_ids, **common}
+
+
+def _config_cells(config: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """(cell id, domain, method) of every cell a trial's config runs."""
+    if "pack_id" in config:
+        return [(cid, s["domain"], s["method"]) for cid, s in zip(config["cell_ids"], config["specs"])]
+    return [(config["cell_id"], config["spec"]["domain"], config["spec"]["method"])]
+
+
 def trial_name(trial) -> str:
-    """A trial's name and directory are its cell id (a worker's working directory ends with it)."""
-    return trial.config["cell"]["cell_id"]
+    """A trial's name and directory are its cell id, or its pack's name (a worker's working directory ends
+    with it)."""
+    config = trial.config["cell"]
+    return config["name"] if "pack_id" in config else config["cell_id"]
 
 
 # ---- driver side: counts and failures ------------------------------------------------------------
@@ -169,7 +270,8 @@ class SweepCallback(tune.Callback):
 
     @staticmethod
     def _running(trials) -> set[str]:
-        return {t.config["cell"]["cell_id"] for t in trials if t.status == "RUNNING"}
+        """The cells of the running trials (every member of a running pack: counts are per cell)."""
+        return {cell_id for t in trials if t.status == "RUNNING" for cell_id, _, _ in _config_cells(t.config["cell"])}
 
     def _refresh(self, trials) -> None:
         done, failed = ledger.finished_and_failed(as_path(self.sweep_dir), self.grid)
@@ -189,10 +291,13 @@ class SweepCallback(tune.Callback):
         error = "worker failed"
         if trial.error_file and os.path.exists(trial.error_file):
             error = Path(trial.error_file).read_text()
-        cell = trial.config["cell"]
-        spec = cell["spec"]
-        store.record_failure(as_path(self.sweep_dir), cell["cell_id"], spec["domain"], spec["method"],
-                             f"failed after {trial.num_failures} attempt(s): {error}")
+        config = trial.config["cell"]
+        where = f" (in pack {config['pack_id']})" if "pack_id" in config else ""
+        sweep_dir = as_path(self.sweep_dir)
+        for cell_id, domain, method in _config_cells(config):
+            if not store.is_done(sweep_dir, domain, method, cell_id):
+                store.record_failure(sweep_dir, cell_id, domain, method,
+                                     f"failed after {trial.num_failures} attempt(s){where}: {error}")
         self._refresh(trials)
 
 
@@ -508,16 +613,16 @@ def _tune_storage(sweep_dir: AnyPath) -> tuple[str, Any]:
     return str(sweep_dir / TUNE_DIR), None
 
 
-def _tune_experiment(sweep_dir: AnyPath, pending: list[CellSpec], allow_restore: bool = True) -> tuple[str, bool]:
+def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: bool = True) -> tuple[str, bool]:
     """Name of the Tune experiment to run, and whether to restore it.
 
     An interrupted experiment is restored when it covers every pending cell (then its running
     trials continue from their checkpoints); otherwise a new experiment over just the pending
-    cells starts (e.g. after a clean finish with failures, or when the state is unreadable).
+    cells (and packs) starts (e.g. after a clean finish with failures, or when the state is unreadable).
     """
     tune_root = sweep_dir / TUNE_DIR
     current_path = tune_root / TUNE_CURRENT
-    pending_ids = {s.cell_id for s in pending}
+    pending_ids = {cell_id for unit in pending for cell_id in unit.cell_ids}
     if current_path.exists():
         current = json.loads(current_path.read_text())
         storage_path, storage_fs = _tune_storage(sweep_dir)
@@ -533,7 +638,7 @@ def _tune_experiment(sweep_dir: AnyPath, pending: list[CellSpec], allow_restore:
     return experiment, False
 
 
-def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[CellSpec], workers: int, max_failures: int,
+def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], workers: int, max_failures: int,
               checkpoint_every_s: float) -> None:
     # Rows live in Parquet, not in Tune's per-trial logs (disabled above): silence Tune's
     # complaint that it cannot build its own result table from them.
@@ -545,8 +650,10 @@ def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[CellSpe
         except Exception as e:  # noqa: BLE001 - an unreadable Tune state must not block the sweep
             log.warning("could not restore Tune experiment %s (%s); starting a new one", experiment, e)
         # Tune does not rerun trials it saw finish, e.g. a cell that failed deterministically
-        # (recorded under failed/): whatever is still missing runs in a fresh experiment.
-        pending = [s for s in pending if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)]
+        # (recorded under failed/): whatever is still missing runs in a fresh experiment (a pack with
+        # a missing member as the whole pack).
+        pending = [u for u in pending if not all(store.is_done(sweep_dir, s.domain, s.method, s.cell_id)
+                                                 for s in u.specs)]
         if not pending:
             return
         experiment, _ = _tune_experiment(sweep_dir, pending, allow_restore=False)
@@ -599,10 +706,9 @@ def _restored_tuner(sweep_dir: AnyPath, experiment: str) -> tune.Tuner:
                               resume_errored=True, storage_filesystem=storage_fs)
 
 
-def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pending: list[CellSpec], workers: int,
+def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pending: list[Unit], workers: int,
                max_failures: int, checkpoint_every_s: float) -> tune.Tuner:
-    configs = [{"spec": s.to_dict(), "cell_id": s.cell_id, "sweep_dir": str(sweep_dir), "sweep_id": callback.name,
-                "checkpoint_every_s": checkpoint_every_s} for s in pending]
+    configs = [unit_config(u, sweep_dir, callback.name, checkpoint_every_s) for u in pending]
     storage_path, storage_fs = _tune_storage(sweep_dir)
     return tune.Tuner(
         _trainable(),
@@ -625,31 +731,36 @@ def run_sweep(space: str, *, name: str | None = None, results: str | Path = stor
               address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
               checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
               dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
-              stream: TextIO | None = None) -> SweepResult:
-    """Run (or continue) the sweep ``name`` over ``space``; see the module docstring."""
+              stream: TextIO | None = None, pack: str | None = None, pack_size: int | None = None) -> SweepResult:
+    """Run (or continue) the sweep ``name`` over ``space``; see the module docstring. ``pack`` / ``pack_size``:
+    how cells are grouped into Tune trials (asp_dist.sweep.packing; None: a new sweep runs one cell per
+    trial, an existing one keeps the packing it was started with)."""
     ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
+    check_packing(pack, pack_size)
     specs = expand(space)
     space_name = space_file(space).stem
     return _run(specs, space_name, name or space_name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream)
+                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream, pack, pack_size)
 
 
 def resume_sweep(name: str, *, results: str | Path = store.DEFAULT_RESULTS, workers: int = 2,
                  address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
                  checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
                  dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
-                 stream: TextIO | None = None) -> SweepResult:
-    """Continue a sweep from its manifest (no space file needed)."""
+                 stream: TextIO | None = None, pack: str | None = None, pack_size: int | None = None) -> SweepResult:
+    """Continue a sweep from its manifest (no space file needed), with the packing it was started with."""
     ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
+    check_packing(pack, pack_size)
     _, manifest = ledger.read_sweep(results, name)
     specs = ledger.specs_from_manifest(manifest)
     return _run(specs, manifest["space"], name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream)
+                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream, pack, pack_size)
 
 
 def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, workers: int, address: str | None,
          max_failures: int, checkpoint_every_s: float, ray_temp_dir: str | None, dashboard: bool,
-         connect_timeout_s: float, stream: TextIO | None) -> SweepResult:
+         connect_timeout_s: float, stream: TextIO | None, pack: str | None = None,
+         pack_size: int | None = None) -> SweepResult:
     sweep_dir = ledger.sweep_dir_for(results, name)
     stream = stream or sys.stderr
     grid = {s.cell_id: f"{s.domain}/{s.method}" for s in specs}
@@ -661,21 +772,26 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
     with ledger.sigterm_as_interrupt():
         if address:  # a cluster that does not answer is refused before anything is written
             ledger.check_sweep_dir_readonly(sweep_dir)
+            resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))
             ledger.check_address(address, connect_timeout_s)
         # A cluster is joined before the sweep dir is written; the embedded Ray starts only if a cell is pending.
         with session() if address else nullcontext():
             ledger.check_sweep_dir(sweep_dir)
             with ledger.sweep_lock(sweep_dir):
-                manifest = ledger.check_manifest(sweep_dir, name, specs, space)  # refuses a different grid
+                packing = resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))  # refuses another one
+                manifest = ledger.check_manifest(sweep_dir, name, specs, space, packing)  # refuses a different grid
                 if store.read_manifest(sweep_dir) is None:
                     store.write_manifest(sweep_dir, manifest)
                 if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch
                     shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers
                 done, _ = ledger.finished_and_failed(sweep_dir, grid)
-                pending = [s for s in specs if s.cell_id not in done]
+                # Units from the whole grid (never from what is left): a resumed pack is the same pack.
+                units = make_units(specs, packing)
+                pending = [u for u in units if not set(u.cell_ids) <= done]
                 counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
                 where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
-                stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done), "
+                how = f", packed ({packing.describe()}: {describe_units(units)})" if packing.packed else ""
+                stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done){how}, "
                              f"{where}, results in {sweep_dir}\n")
                 if pending:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)

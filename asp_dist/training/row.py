@@ -41,9 +41,11 @@ VOLATILE_COLUMNS = frozenset(
 )
 # Stored dictionary-encoded, so that hive-style directories of the same names agree with them.
 PARTITION_COLUMNS = ("domain", "method")
-# Columns the sweep service adds to run_cell's row.
+# Columns the sweep service adds to run_cell's row. `pack`: the pack a cell was trained in
+# (asp_dist.sweep.packing, e.g. "particles/trial-3/4f1c2a/1of1-k21"), null for a cell trained alone;
+# rows written before packs existed lack the column and read as null.
 SWEEP_COLUMNS: tuple[tuple[str, pa.DataType], ...] = (
-    ("sweep_id", pa.string()), ("ray_node_id", pa.string()), ("ray_version", pa.string()),
+    ("sweep_id", pa.string()), ("ray_node_id", pa.string()), ("ray_version", pa.string()), ("pack", pa.string()),
 )
 _ARROW_TYPES = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
 

@@ -80,6 +80,7 @@ TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
 _COL = {name: i for i, name in enumerate(TERMS)}
 CHUNK = 128  # updates whose random draws are made ahead
 BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's and FlatAdam's defaults
+PACK_CHECKPOINT_VERSION = 1
 
 
 def supports(spec: CellSpec) -> bool:
@@ -754,12 +755,19 @@ class PackedResult:
 
 
 def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None, curves: bool = False,
-             progress: ProgressFn | None = None) -> list[PackedResult]:
+             progress: ProgressFn | None = None, checkpoint: Callable[[dict], None] | None = None,
+             restore: dict | None = None, checkpoint_every_s: float = 30.0,
+             checkpoint_every_steps: int | None = None) -> list[PackedResult]:
     """run_cell for K packable cells at once: bases, data, one packed training, per-member evaluation.
 
-    bases   trained bases by base_key (as the sweep's base cache hands them out); a missing one is
-            trained here, once per key (its time goes to the first member of that base)
-    curves  record each member's learning curve with probes, as run_cell(curve=[...])
+    bases       trained bases by base_key (as the sweep's base cache hands them out); a missing one is
+                trained here, once per key (its time goes to the first member of that base)
+    curves      record each member's learning curve with probes, as run_cell(curve=[...])
+    checkpoint  called with the pack's full training state every `checkpoint_every_steps` updates, or
+                every `checkpoint_every_s` seconds when no step interval is given (as run_cell's)
+    restore     a state previously passed to `checkpoint` by a pack of the same cells (and the same
+                rejected bases): training continues from it, and every member's row equals the one an
+                uninterrupted run gives (resumed_from_step says where it continued)
 
     Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
     eval are its own; train is the pack's training time divided by the number of members."""
@@ -806,6 +814,9 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = 
                 unpaired[i] = u_cache[spec.unpaired_size]
             agents[i] = domain.new_agents(spec, spec.seed_for("init"))
 
+    live_ids = [specs[i].cell_id for i in live]
+    if restore is not None and restore.get("cell_ids") != live_ids:
+        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
     wall, cpu = time.perf_counter(), time.process_time()
     trainer = PackedParticleTrainer([specs[i] for i in live], [paired[i] for i in live],
                                     [unpaired[i] for i in live], [agents[i] for i in live])
@@ -813,11 +824,38 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = 
     if curves:
         for i, member in zip(live, trainer.members):
             member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
+    resumed_from = None
+    if restore is not None:
+        trainer.load_state_dict(restore["trainer"])
+        resumed_from = trainer.step
+        for i, carried in zip(live, restore["timings"]):
+            for name, seconds in carried.items():
+                timers[i].seconds[name] += seconds
+
+    def save_state() -> None:
+        share = {"time_train_wall_s": (time.perf_counter() - wall) / len(live),
+                 "time_train_cpu_s": (time.process_time() - cpu) / len(live)}
+        timings = []
+        for i in live:  # each member's phases so far, with its share of the pack's training up to now
+            seconds = dict(timers[i].seconds)
+            for name, value in share.items():
+                seconds[name] = seconds.get(name, 0.0) + value
+            timings.append(seconds)
+        checkpoint({"version": PACK_CHECKPOINT_VERSION, "cell_ids": live_ids, "trainer": trainer.state_dict(),
+                    "timings": timings})
+
     report_every = max(1, trainer.train_steps // 100)
+    last_save = time.monotonic()
     while trainer.step < trainer.train_steps:
         trainer.train_step()
         if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
             progress("train", trainer.step, trainer.train_steps, {})
+        if checkpoint is not None and trainer.step < trainer.train_steps:
+            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
+                (time.monotonic() - last_save >= checkpoint_every_s)
+            if due:
+                save_state()
+                last_save = time.monotonic()
     share_wall = (time.perf_counter() - wall) / len(live)
     share_cpu = (time.process_time() - cpu) / len(live)
 
@@ -835,7 +873,7 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = 
             figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
         results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
                                    losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
-                                   resumed_from=None)
+                                   resumed_from=resumed_from)
         results[i].curve = member.curve if curves else None
         if progress is not None:
             progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
