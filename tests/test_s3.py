@@ -238,7 +238,7 @@ time.sleep(max(0.0, float(sys.argv[2]) - time.time()))
 busy = lease.try_acquire()
 print("won" if busy is None else "lost", flush=True)
 if busy is None:
-    time.sleep(3)
+    sys.stdin.readline()  # hold the lease until every racer has answered (a late one must still lose)
     lease.release()
 """
 
@@ -246,9 +246,13 @@ if busy is None:
 def test_exactly_one_of_racing_processes_gets_a_lease(s3, on_s3):
     start = time.time() + 4  # the processes import, then all ask at this moment
     procs = [subprocess.Popen([sys.executable, "-c", RACE, f"{on_s3}/lease", str(start)], env=s3.env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(6)]
-    answers = [p.communicate(timeout=120)[0].strip() for p in procs]
-    assert sorted(answers) == ["lost"] * 5 + ["won"], [p.stderr for p in procs]
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(6)]
+    try:
+        answers = [p.stdout.readline().strip() for p in procs]
+    finally:
+        errors = [p.communicate("\n", timeout=120)[1] for p in procs]
+    assert sorted(answers) == ["lost"] * 5 + ["won"], errors
 
 
 HOLD = """import sys, time
