@@ -1,0 +1,829 @@
+"""K lever cells trained as one batched model: the packed counterpart of the single-cell path.
+
+The sweep trains a lever cell on the reference trainer (asp_dist.training.fast.choose_trainer has
+no fast lever trainer, so asp_dist.training.trainer.Trainer: autograd and torch.optim.Adam): per
+update ε-greedy deep Q-learning on batch_size fresh games plus batch_size replayed ones, the paired
+loss, and for ASP one discriminator per CommNet channel (f1, f2). This trainer stacks the
+parameters of K cells ("members") on a leading dimension and computes the same update for all of
+them with batched ops and hand-derived gradients; one batched Adam step (torch._fused_adam_ over the
+stacked buffer) updates every member's network, another every ASP member's two discriminators.
+
+The same loss, computed with fewer operations (exact in real arithmetic, equal to the reference up
+to float rounding):
+
+- h1 = tanh(W1·embed(id) + b1) depends on the ID only, so it is computed once per ID (a V × H
+  table) instead of per seat; so are W2's two halves applied to it, A = h1·W2aᵀ and C = h1·W2bᵀ.
+  A seat's pre-activation of f2 is then W2·[h1, c1] + b2 = (A + b2 − C/2)[id] + Σ_seats (C/2)[id']
+  (c1 is the mean of the two other seats): two small matmuls with one-hot matrices (a seat's ID,
+  the IDs seated in its game), and their transposes give the gradient of the tables.
+- The f1 discriminator sees h1 rows, one of V values each: it runs on the V per-ID rows with each
+  row weighted by how often its ID is seated in the update's games (the same sums, regrouped).
+- tanh of the seats' f2 block is computed as 2·σ(2x) − 1 (same value to 1.2e-7; torch.tanh is
+  ~5x slower than sigmoid on CPU); the per-ID h1 table uses torch.tanh.
+- Nothing is computed that the update does not use (the reference back-propagates the model's
+  adversarial loss into the discriminators' parameters too, then discards it).
+
+What stays per member, so that a member's result does not depend on its pack-mates:
+
+- loss weights (PC / OSP / ASP differ only in them), λ0, λ1 and its schedule, the adversarial
+  loss kind, the ε schedule, both learning rates: per-member columns;
+- data: its own paired set (padded to the pack's largest, padded rows weighted 0), its own U
+  (padded likewise; indices drawn in its own range), its own replay buffer;
+- random streams: its own generator, seeded as Trainer seeds it, drawn in Trainer's order. No draw
+  depends on a value: the fresh games, the replay indices (the buffer's fill level is a function of
+  the update count), the ε-greedy exploration coins and random levers (drawn whether or not they
+  are used) and the indices into U. So the draws of up to CHUNK updates are made ahead, member by
+  member with that member's generator and in the single-cell order (rand for the games, randint for
+  replay, randint for random levers, rand for the coins, then disc_steps × (f1, f2) randint into U),
+  and the batched update consumes them. A generator ends training in the single-cell run's state.
+- There is no target network: the lever game has one step, so the Q target is the reward itself
+  (asp_dist.domains.levers.dqn_step); the replay buffer is the only Q-learning state.
+
+Independence of pack-mates: no op mixes members (batched matmuls, gathers within a member's own
+rows, elementwise ops, reductions along rows or features), and a frozen member keeps its place in
+every call, so a member's arithmetic is bit for bit the same whatever its mates are as long as the
+pack's shapes are the same (number of members, of ASP members, padded paired rows and U); with
+other shapes some kernels may round differently, by float rounding. Over a whole cell such a
+difference can flip a discrete choice - a greedy argmax between two equal-looking Q-values, or the
+side of a discriminator's leaky-ReLU kink for a pre-activation within ~1e-8 of 0 - and send the
+run down another trajectory; the same holds against the single-cell path. Measured at paper
+settings (trial 0's 21 cells, 1,000 updates): the 14 PC and OSP rows equal run_cell's to 1e-4, the
+7 ASP rows part from theirs after a few hundred updates (first event traced: one kink flip at
+update 202 of a 300-update run). Rows are reproducible for a fixed packing.
+tests/test_packed_levers.py checks both.
+
+A member whose network gradient becomes non-finite (checked every update, before the Adam step),
+whose discriminators' gradient does (checked before each discriminator step) or whose recorded loss
+does is frozen: its gradients are zeroed and its momentum cleared, so Adam leaves its parameters
+and its discriminators' at their last finite values, and it is reported failed.
+
+Packs: any mix of methods, paired counts, trials and per-member knobs, provided the members agree
+on the fields in SHARED (tensor shapes, replay capacity, the length of training). Mixed packs
+compute the union of the members' work (a PC member rides along in the self-play rows with weight
+0), so packs of one method are cheapest.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from asp_dist.domains import get_domain
+from asp_dist.domains.contract import ProgressFn, Tensors
+from asp_dist.domains.levers import AGENTS, CommNet, epsilon
+from asp_dist.spec import CellSpec
+from asp_dist.training.adversary import Adversaries
+from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
+from asp_dist.training.cell import PhaseTimer, make_probe
+from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
+from asp_dist.training.packed.particles import PackedResult, _column, _generator, _StackedParams
+from asp_dist.training.row import LOSS_TERMS, build_row
+from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+
+__all__ = ["PackedLeverTrainer", "PackedResult", "pack_key", "run_pack", "supports", "SHARED", "TERMS"]
+
+_tanh_backward = torch.ops.aten.tanh_backward
+
+
+def _tanh(x: torch.Tensor) -> torch.Tensor:
+    """tanh(x) = 2·σ(2x) - 1, in place: torch.tanh is ~5x slower than sigmoid on CPU here, and the
+    two agree to within 1.2e-7 (absolute), float rounding of values in [-1, 1]."""
+    return torch.sigmoid_(x.mul_(2.0)).mul_(2.0).sub_(1.0)
+_leaky_relu_backward = torch.ops.aten.leaky_relu_backward
+
+# Fields every member of a pack shares: they fix the tensor shapes, the replay buffer and the loop.
+SHARED = ("domain", "train_steps", "batch_size", "levers_hidden", "levers_num_ids", "levers_replay_size",
+          "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
+# What each member records per update (Trainer's diagnostics), in column order.
+TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
+_COL = {name: i for i, name in enumerate(TERMS)}
+CHANNELS = ("f1", "f2")  # Adversaries' order (sorted channel names)
+CHUNK = 32  # updates whose random draws are made ahead
+
+
+def retain_freed_memory() -> None:
+    """Keep freed memory in the process's heap (glibc: mmap threshold 32 MiB, trim threshold
+    256 MiB) instead of handing it back to the kernel at every free.
+
+    A pack's intermediate tensors are ~0.1-3 MB each (K × a single cell's). glibc serves blocks
+    over 128 KiB with a fresh mmap and unmaps them on free, and trims the heap top beyond 128 KiB,
+    so with the defaults nearly every op of a packed update page-faults its output into existence
+    (measured: +50 % CPU time per update for 8 ASP members). A single cell's tensors stay under the
+    threshold, which is why its path never paid this. Process-wide and idempotent; peak RSS is
+    unchanged (freed memory is reused, not returned until exit). No-op without glibc's mallopt."""
+    global _MALLOC_DONE
+    if _MALLOC_DONE:
+        return
+    _MALLOC_DONE = True
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    mallopt(-3, 32 << 20)   # M_MMAP_THRESHOLD (its maximum on 64-bit glibc)
+    mallopt(-1, 256 << 20)  # M_TRIM_THRESHOLD
+
+
+_MALLOC_DONE = False
+
+
+def explore(coins: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """dqn_step's `torch.rand(...) < eps` for pre-drawn coins and a float32 tensor of ε values: a
+    Python float compared with a float32 tensor is rounded to float32 first, so the comparison must
+    be in float32 too (in float64 a coin equal to float32(ε) < ε would explore where dqn_step does not)."""
+    assert eps.dtype == torch.float32
+    return coins < eps
+
+
+def supports(spec: CellSpec) -> bool:
+    """Whether `spec` can train in a pack: any lever cell (every lever knob is implemented)."""
+    return spec.resolved().domain == "levers"
+
+
+def pack_key(spec: CellSpec) -> tuple:
+    """Cells with equal keys can share a pack."""
+    spec = spec.resolved()
+    return tuple(getattr(spec, name) for name in SHARED)
+
+
+@dataclass
+class Member:
+    """One cell of a pack: its spec and everything the pack keeps per member."""
+
+    spec: CellSpec
+    weights: LossWeights
+    agents: CommNet                        # parameters are views of the pack's buffer: always current
+    discs: tuple[torch.nn.Module, ...]     # (f1, f2) discriminators of an ASP member, likewise; else ()
+    gen: torch.Generator
+    n_paired: int
+    terms: tuple[str, ...]                 # the diagnostics this member records (as Trainer)
+    probe: Callable[[int], dict[str, float]] | None = None
+    curve: list[dict[str, float]] = field(default_factory=list)
+    failed_step: int | None = None
+    error: str | None = None
+
+    @property
+    def self_play(self) -> bool:
+        return self.weights.needs_self_play
+
+    @property
+    def adversary(self) -> bool:
+        return self.weights.needs_adversary
+
+    @property
+    def failed(self) -> bool:
+        return self.error is not None
+
+
+class PackedLeverTrainer:
+    """K lever cells as one batched model; train_step() is one update of every member.
+
+    specs, paired, unpaired, agents: one entry per member, as Trainer gets them (run_cell: P and U
+    from the member's base, a fresh CommNet). The agents' parameters are re-pointed into the pack's
+    buffer. After training, member i's `members[i].agents` holds its trained weights,
+    `loss_columns(i)` its row's loss_* columns and `members[i].curve` its learning curve (probes:
+    set `members[i].probe` as run_cell sets Trainer.probe)."""
+
+    def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
+                 agents: Sequence[CommNet]):
+        specs = [s.resolved() for s in specs]
+        if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
+            raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
+        for s in specs:
+            if not supports(s):
+                raise ValueError(f"{s.cell_id} cannot be packed (lever cells only)")
+            if pack_key(s) != pack_key(specs[0]):
+                diff = [n for n in SHARED if getattr(s, n) != getattr(specs[0], n)]
+                raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+        retain_freed_memory()
+        domain = get_domain("levers")
+        s0 = specs[0]
+        self.M, self.B, self.H, self.V = len(specs), s0.batch_size, s0.levers_hidden, s0.levers_num_ids
+        self.size, self.train_steps = s0.levers_replay_size, s0.train_steps
+        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
+        M, B, H, V = self.M, self.B, self.H, self.V
+
+        # ---- members: weights, generators and discriminators exactly as Trainer.__init__ ------------
+        self.members: list[Member] = []
+        discs: list[tuple[torch.nn.Module, ...]] = []
+        for spec, p, a in zip(specs, paired, agents):
+            weights = method_weights(spec)
+            gen = torch.Generator().manual_seed(spec.seed_for("train"))
+            pair: tuple[torch.nn.Module, ...] = ()
+            if weights.needs_adversary:
+                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
+                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
+                pair = tuple(adv.discs[ch] for ch in CHANNELS)
+                discs.append(pair)
+            n = len(p["ids"]) if weights.paired != 0.0 else 0
+            terms = (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n else ()) \
+                + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ())
+            self.members.append(Member(spec, weights, a, pair, gen, n, terms + ("total",)))
+        mem = self.members
+        self.any_self_play = any(m.self_play for m in mem)
+        self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]
+        self.Ma = len(self.adv_rows)
+        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
+        self.all_adv = self.Ma == M
+        self.adv_first = self.adv_rows == list(range(self.Ma))  # run_pack puts the ASP members first
+
+        # ---- stacked parameters: the CommNets; the (f1, f2) discriminators of the ASP members ---------
+        self.net = _StackedParams(agents, [m.spec.lr for m in mem])
+        self.E, self.W1, self.b1, self.W2, self.b2, self.Wq, self.bq = self.net.views
+        (self.g_E, self.g_W1, self.g_b1, self.g_W2, self.g_b2, self.g_Wq, self.g_bq) = self.net.grad_views
+        self.W1T, self.W2T, self.WqT = (w.transpose(1, 2) for w in (self.W1, self.W2, self.Wq))
+        self.dnet = None
+        if self.Ma:
+            Ma = self.Ma
+            # Channel-major: rows [0, Ma) are the f1 discriminators, [Ma, 2Ma) the f2 ones.
+            self.dnet = _StackedParams([d[0] for d in discs] + [d[1] for d in discs],
+                                       [mem[i].spec.disc_lr for i in self.adv_rows] * 2)
+            slopes = {m.negative_slope for m in discs[0][0].net if isinstance(m, torch.nn.LeakyReLU)}
+            self.slope = slopes.pop() if slopes else 0.01
+            v, g = self.dnet.views, self.dnet.grad_views
+            self.dlayers = [[(v[2 * i][c * Ma:(c + 1) * Ma], v[2 * i][c * Ma:(c + 1) * Ma].transpose(1, 2),
+                              v[2 * i + 1][c * Ma:(c + 1) * Ma], g[2 * i][c * Ma:(c + 1) * Ma],
+                              g[2 * i + 1][c * Ma:(c + 1) * Ma]) for i in range(len(v) // 2)] for c in range(2)]
+
+        # ---- per-ID tables: h1 per ID, and [h1, h1/2] block-diagonal for W2's two halves ------------
+        self.H12 = torch.zeros(M, 2 * V, 2 * H)
+        rows_max = (2 * B if self.any_self_play else 0) + max(m.n_paired for m in mem)
+        self.seat_buf = torch.zeros(M, rows_max * AGENTS, V)  # one-hot ID of each seat
+        self.game_buf = torch.zeros(M, rows_max, V)           # the IDs seated in each game
+
+        # ---- paired data (padded to the largest set; padded rows weighted 0) ------------------------
+        n_max = max(m.n_paired for m in mem)
+        self.n = n_max
+        self.p_ids = torch.arange(AGENTS).repeat(M, n_max, 1)  # padding: a valid game, weighted 0
+        self.p_f1, self.p_f2 = torch.zeros(M, n_max, AGENTS, H), torch.zeros(M, n_max, AGENTS, H)
+        self.p_onehot = torch.zeros(M, n_max, AGENTS, AGENTS)
+        self.p_mask = torch.zeros(M, n_max, 1, 1)
+        ce_w, mse_w = torch.zeros(M, n_max, 1, 1), torch.zeros(M, n_max, 1, 1)
+        for i, (m, p) in enumerate(zip(mem, paired)):
+            k = m.n_paired
+            if k:
+                self.p_ids[i, :k] = p["ids"]
+                self.p_f1[i, :k], self.p_f2[i, :k] = p["f1"], p["f2"]
+                self.p_onehot[i, :k] = F.one_hot(p["levers"], AGENTS).float()
+                self.p_mask[i, :k] = 1.0
+                ce_w[i, :k] = m.weights.paired / (k * AGENTS)          # cross_entropy: mean over n·3 rows
+                mse_w[i, :k] = 2.0 * m.weights.paired / (k * AGENTS * H)  # mse_loss: mean over n·3·H
+        self.p_ce_w, self.p_mse_w = ce_w, mse_w
+        self.inv_n3 = _column([1.0 / (max(m.n_paired, 1) * AGENTS) for m in mem])
+        self.inv_n3H = _column([1.0 / (max(m.n_paired, 1) * AGENTS * H) for m in mem])
+        if n_max:
+            # Scatter of the paired rows' h1 gradients into the per-ID table, as one batched matmul.
+            self.p_scatter = F.one_hot(self.p_ids.view(M, -1), V).float().transpose(1, 2).contiguous()
+            self.p_h1_index = (self.p_ids + (torch.arange(M) * V).view(M, 1, 1)).view(-1)
+
+        # ---- self-play: replay buffers, the DQN loss scale ------------------------------------------
+        self.r_ids = torch.zeros(M, self.size, AGENTS, dtype=torch.long)
+        self.r_lev = torch.zeros(M, self.size, AGENTS, dtype=torch.long)
+        self.r_rew = torch.zeros(M, self.size)
+        self.r_offset = (torch.arange(M) * self.size).view(M, 1)
+        self.pos = self.filled = 0
+        # d(w_sp · mse(mean over seats of Q(chosen), reward)) / dQ(chosen) = (value - reward) · 2·w_sp / (3·G)
+        self.sp_coef = {G: _column([2.0 * m.weights.self_play / (AGENTS * G) for m in mem]) for G in (B, 2 * B)}
+        self.w64 = {name: _column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
+                    for name in ("self_play", "paired")}
+        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
+
+        # ---- discriminator data ----------------------------------------------------------------------
+        if self.Ma:
+            ub = self.ub
+            sizes = [len(unpaired[i]["f1"]) for i in self.adv_rows]
+            self.u_sizes, u_max = sizes, max(sizes)
+            self.U = []
+            for ch in CHANNELS:
+                U = torch.zeros(self.Ma, u_max, H)
+                for a, i in enumerate(self.adv_rows):
+                    U[a, :sizes[a]] = unpaired[i][ch]
+                self.U.append(U.view(self.Ma * u_max, H))
+            self.u_offset = (torch.arange(self.Ma) * u_max).view(self.Ma, 1)
+            kinds = [mem[i].spec.adversary_loss for i in self.adv_rows]
+            self.ns_float = _column([k == "non_saturating" for k in kinds])
+            self.ns = self.ns_float.bool().view(-1)
+            self.real_scale = torch.full((self.Ma, ub), 1.0 / ub)
+            self.labels = {rows: torch.cat([torch.ones(ub), torch.zeros(rows)]).expand(self.Ma, ub + rows)
+                           for rows in (V, AGENTS * B, 2 * AGENTS * B)}
+            self.scales = {nf: torch.cat([torch.full((ub,), 1.0 / ub), torch.full((nf,), 1.0 / nf)]).expand(
+                self.Ma, ub + nf) for nf in (AGENTS * B, 2 * AGENTS * B)}
+            self.ones = torch.ones(self.Ma, 2 * AGENTS * B)
+
+        # ---- bookkeeping, as Trainer's ----------------------------------------------------------------
+        self.step = 0
+        self.window_start = int(0.9 * self.train_steps)
+        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
+        self.curve_window = max(1, self.curve_every // 10)
+        self.loss_sums = torch.zeros(M, len(LOSS_TERMS), dtype=torch.float64)
+        self.loss_count = 0
+        self.curve_sums = torch.zeros(M, len(TERMS), dtype=torch.float64)
+        self.curve_count = 0
+        self.active = [True] * M
+        self.chunk_start = self.chunk_end = 0
+        self.chunk_gen_states: list[torch.Tensor] = []
+        self._alloc_draws()
+
+    # ---- random draws, made ahead per member in the single-cell order ---------------------------
+    def _alloc_draws(self) -> None:
+        M, B, V = self.M, self.B, self.V
+        self.uniform = torch.zeros(CHUNK, B, V)                              # one member's game draws
+        self.fresh = torch.arange(AGENTS).repeat(CHUNK, M, B, 1)             # (S, M, B, 3) fresh games
+        self.rank = torch.arange(AGENTS).repeat(CHUNK, M, B, 1)              # their rank (reward rule)
+        self.rep = torch.zeros(CHUNK, M, B, dtype=torch.long)                # replay indices
+        self.rand_lev = torch.zeros(CHUNK, M, B, AGENTS, dtype=torch.long)   # random levers
+        self.coins = torch.ones(CHUNK, M, B, AGENTS)                         # exploration coins
+        self.eps = torch.zeros(CHUNK, M, 1, 1)
+        self.real_idx = torch.zeros(CHUNK * self.disc_steps, 2, self.Ma, self.ub, dtype=torch.long)
+        if self.Ma:
+            self.lam_now = torch.zeros(CHUNK, self.Ma, dtype=torch.float64)     # λ1 of the update
+            self.lam_signed = torch.zeros(CHUNK, self.Ma, dtype=torch.float64)  # d(λ1·L_u)/d(logit) · N / (σ - ns)
+
+    def _filled_at(self, step: int) -> int:
+        """Games in the replay buffer before update `step` (every self-play member adds batch_size)."""
+        return min(step * self.B, self.size)
+
+    def _draw_chunk(self) -> None:
+        """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member,
+        with the calls dqn_step and Trainer.train_step make, in their order."""
+        start, S = self.step, min(CHUNK, self.train_steps - self.step)
+        B, V, ub, ds = self.B, self.V, self.ub, self.disc_steps
+        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
+        self.chunk_start, self.chunk_end = start, start + S
+        adv_slot = {i: a for a, i in enumerate(self.adv_rows)}
+        for i, m in enumerate(self.members):
+            if not m.self_play:  # PC draws nothing
+                continue
+            gen, unif = m.gen, self.uniform[:S].unbind(0)
+            reps, levs, coins = self.rep[:S, i].unbind(0), self.rand_lev[:S, i].unbind(0), self.coins[:S, i].unbind(0)
+            idx = self.real_idx[:S * ds, :, adv_slot[i]].unbind(0) if m.adversary else ()
+            high = m.spec.unpaired_size
+            for s in range(S):
+                torch.rand(B, V, generator=gen, out=unif[s])  # draw_games
+                filled = self._filled_at(start + s)
+                if filled > 0:
+                    torch.randint(filled, (B,), generator=gen, out=reps[s])
+                torch.randint(AGENTS, (B, AGENTS), generator=gen, out=levs[s])
+                torch.rand(B, AGENTS, generator=gen, out=coins[s])
+                for d in range(ds if m.adversary else 0):
+                    for c in range(2):
+                        torch.randint(high, (ub,), generator=gen, out=idx[s * ds + d][c])
+                self.eps[s, i] = epsilon(m.spec, start + s, self.train_steps)
+            games = self.uniform[:S].argsort(dim=-1)[..., :AGENTS]
+            self.fresh[:S, i] = games
+            self.rank[:S, i] = games.argsort(dim=-1).argsort(dim=-1)
+        self.explore = explore(self.coins[:S], self.eps[:S])
+        self.rep_flat = (self.rep[:S] + self.r_offset.unsqueeze(0)).view(S, -1)
+        if self.Ma:
+            self.real_flat = self.real_idx[:S * ds] + self.u_offset.unsqueeze(0).unsqueeze(0)
+            steps = torch.arange(start, start + S, dtype=torch.float64)
+            for a, i in enumerate(self.adv_rows):
+                spec, w = self.members[i].spec, self.members[i].weights
+                if spec.lambda_unpaired_schedule == "constant":
+                    factor = torch.ones(S, dtype=torch.float64)
+                else:  # lambda_factor, vectorised (the same float64 arithmetic)
+                    ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
+                    factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
+                now = w.unpaired * factor
+                self.lam_now[:S, a] = now
+                self.lam_signed[:S, a] = now if spec.adversary_loss == "non_saturating" else -now
+
+    # ---- one update of every member -------------------------------------------------------------
+    def in_curve_window(self) -> bool:
+        return (-self.step - 1) % self.curve_every < self.curve_window
+
+    def recording(self) -> bool:
+        return self.step >= self.window_start or self.in_curve_window()
+
+    @torch.no_grad()
+    def train_step(self) -> None:
+        if self.step >= self.train_steps:
+            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
+        if self.step >= self.chunk_end:
+            self._draw_chunk()
+        j = self.step - self.chunk_start
+        M, B, H, V, n = self.M, self.B, self.H, self.V, self.n
+        record = self.recording()
+        vals: dict[str, torch.Tensor] | None = {} if record else None
+
+        # ---- games of this update: fresh, replayed (after the first update), paired ---------------
+        G = 0
+        parts = []
+        if self.any_self_play:
+            G = B if self.filled == 0 else 2 * B
+            fresh = self.fresh[j]
+            parts.append(fresh)
+            if G > B:
+                rep = self.rep_flat[j]
+                parts.append(self.r_ids.view(-1, AGENTS).index_select(0, rep).view(M, B, AGENTS))
+        if n:
+            parts.append(self.p_ids)
+        if not parts:  # nothing to learn in any member (PC without paired data): no update at all
+            if record:
+                self._record({}, j, G)
+            self.step += 1
+            self._finish_curve_point()
+            return
+        ids = parts[0] if len(parts) == 1 else torch.cat(parts, 1)  # (M, R, 3)
+        R = ids.shape[1]
+
+        # ---- forward: per-ID tables, then one-hot matmuls per seat and per game -------------------
+        H1 = torch.baddbmm(self.b1, self.E, self.W1T).tanh_()             # (M, V, H): h1 of each ID
+        H12 = self.H12
+        H12[:, :V, :H] = H1
+        torch.mul(H1, 0.5, out=H12[:, V:, H:])
+        T = torch.bmm(H12, self.W2T)                                      # [h1·W2aᵀ ; (h1/2)·W2bᵀ]
+        TA, TC = T[:, :V], T[:, V:]
+        TA.add_(self.b2).sub_(TC)                                         # A + b2 - C/2
+        seat = self.seat_buf[:, :R * AGENTS].zero_().scatter_(2, ids.view(M, R * AGENTS, 1), 1.0)  # (M, 3R, V)
+        game = self.game_buf[:, :R].zero_().scatter_(2, ids, 1.0)                                # (M, R, V)
+        h2 = torch.bmm(seat, TA).view(M, R, AGENTS, H)                    # (A + b2 - C/2)[id]
+        h2 += torch.bmm(game, TC).unsqueeze(2)                            # + Σ_seats (C/2)[id']
+        h2 = _tanh(h2)                                                    # (M, R, 3, H)
+        q = torch.baddbmm(self.bq, h2.view(M, R * AGENTS, H), self.WqT).view(M, R, AGENTS, AGENTS)
+        dq = torch.zeros_like(q)
+        dh2_extra: list[tuple[slice, torch.Tensor]] = []
+
+        # ---- self-play: ε-greedy levers of the fresh games, the DQN loss over fresh + replayed -------
+        if G:
+            greedy = q[:, :B].argmax(dim=-1)
+            levers = torch.where(self.explore[j], self.rand_lev[j], greedy)
+            reward = (levers == self.rank[j]).float().mean(dim=2)
+            if G > B:
+                all_lev = torch.cat([levers, self.r_lev.view(-1, AGENTS).index_select(0, rep).view(M, B, AGENTS)], 1)
+                all_rew = torch.cat([reward, self.r_rew.view(-1).index_select(0, rep).view(M, B)], 1)
+            else:
+                all_lev, all_rew = levers, reward
+            index = all_lev.unsqueeze(3)
+            err = q[:, :G].gather(3, index).squeeze(3).mean(dim=2) - all_rew  # (M, G)
+            dq[:, :G].scatter_(3, index, (err * self.sp_coef[G]).unsqueeze(2).unsqueeze(3).expand(M, G, AGENTS, 1))
+            if record:
+                vals["self_play"] = (err * err).mean(1)
+            # the buffer after the update's own replay draw, as dqn_step writes it
+            slots = (self.pos + torch.arange(B)) % self.size
+            self.r_ids.index_copy_(1, slots, fresh)
+            self.r_lev.index_copy_(1, slots, levers)
+            self.r_rew.index_copy_(1, slots, reward)
+            self.pos = (self.pos + B) % self.size
+            self.filled = min(self.filled + B, self.size)
+
+        # ---- paired: MSE on h1 and h2, cross-entropy of Q as logits on the base's levers ---------------
+        dH1_direct = None
+        if n:
+            rows = slice(G, G + n)
+            logp = q[:, rows].log_softmax(-1)
+            dq[:, rows] = (logp.exp() - self.p_onehot) * self.p_ce_w
+            d2 = h2[:, rows] - self.p_f2
+            dh2_extra.append((rows, d2 * self.p_mse_w))
+            h1p = H1.reshape(M * V, H).index_select(0, self.p_h1_index).view(M, n, AGENTS, H)
+            d1 = h1p - self.p_f1
+            dH1_direct = torch.bmm(self.p_scatter, (d1 * self.p_mse_w).view(M, n * AGENTS, H))
+            if record:
+                mask = self.p_mask
+                mse1 = (d1 * d1 * mask).sum((1, 2, 3)).view(M, 1).mul_(self.inv_n3H)
+                mse2 = (d2 * d2 * mask).sum((1, 2, 3)).view(M, 1).mul_(self.inv_n3H)
+                ce = (logp * self.p_onehot * mask).sum((1, 2, 3)).view(M, 1).mul_(self.inv_n3)
+                vals["paired"] = (mse1 + mse2 - ce).view(-1)
+
+        # ---- ASP: discriminator steps, then the model's adversarial gradients -----------------------
+        dh2 = torch.bmm(dq.view(M, R * AGENTS, AGENTS), self.Wq).view(M, R, AGENTS, H)
+        for rows, d in dh2_extra:
+            dh2[:, rows] += d
+        if self.Ma:
+            dX1, dX2 = self._adversarial(H1, h2, ids, G, j, vals)
+            if dH1_direct is None:
+                dH1_direct = torch.zeros(M, V, H)
+            if self.adv_first:
+                dh2[:self.Ma, :G] += dX2
+                dH1_direct[:self.Ma] += dX1
+            else:
+                dh2[:, :G].index_add_(0, self.adv_idx, dX2)
+                dH1_direct.index_add_(0, self.adv_idx, dX1)
+
+        # ---- backward through q, the gathers, W2 and the per-ID f1 block -----------------------------
+        torch.bmm(dq.view(M, R * AGENTS, AGENTS).transpose(1, 2), h2.view(M, R * AGENTS, H), out=self.g_Wq)
+        torch.sum(dq.view(M, R * AGENTS, AGENTS), 1, out=self.g_bq)
+        dpre2 = _tanh_backward(dh2, h2)
+        dsum = dpre2[:, :, 0] + dpre2[:, :, 1]
+        dsum += dpre2[:, :, 2]                                            # (M, R, H): Σ over a game's seats
+        dTA = torch.bmm(seat.transpose(1, 2), dpre2.view(M, R * AGENTS, H))
+        dTC = torch.bmm(game.transpose(1, 2), dsum)
+        torch.sum(dTA, 1, out=self.g_b2)
+        dT = torch.cat([dTA, dTC.sub_(dTA)], 1)                           # d/d(C/2) = dTC - dTA
+        torch.bmm(dT.transpose(1, 2), H12, out=self.g_W2)
+        dH12 = torch.bmm(dT, self.W2)                                     # (M, 2V, 2H)
+        dH1 = torch.add(dH12[:, :V, :H], dH12[:, V:, H:], alpha=0.5)
+        if dH1_direct is not None:
+            dH1 += dH1_direct
+        dpre1 = _tanh_backward(dH1, H1)
+        torch.bmm(dpre1.transpose(1, 2), self.E, out=self.g_W1)
+        torch.sum(dpre1, 1, out=self.g_b1)
+        torch.bmm(dpre1, self.W1, out=self.g_E)
+
+        # ---- one Adam step for every member ----------------------------------------------------------
+        self.net.zero_frozen_grads()
+        if not bool(torch.isfinite(self.net.grad.sum())):
+            self._freeze([i for i in range(M) if self.active[i]
+                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
+                         "non-finite loss gradient")
+        self.net.step()
+        if record:
+            self._record(vals, j, G)
+        self.step += 1
+        self._finish_curve_point()
+
+    def _adversarial(self, H1: torch.Tensor, h2: torch.Tensor, ids: torch.Tensor, G: int, j: int,
+                     vals: dict | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """disc_steps BCE steps of each ASP member's two discriminators (f1 on the per-ID h1 rows, each
+        weighted by its seat count; f2 on the self-play h2 rows), then d(λ1·L_u)/d(h1 per ID, h2 rows)
+        through the updated ones."""
+        Ma, ub, V, H, ds = self.Ma, self.ub, self.V, self.H, self.disc_steps
+        nf = AGENTS * G  # fake rows of each channel (fresh and replayed games' seats)
+        # Inputs of the two discriminators: ub real rows, then the fake ones (h1 per ID; h2 per seat).
+        X = (torch.empty(Ma, ub + V, H), torch.empty(Ma, ub + nf, H))
+        X[0][:, ub:] = self._adv(H1)
+        X[1][:, ub:].view(Ma, G, AGENTS, H).copy_(self._adv(h2[:, :G]))
+        counts = torch.zeros(Ma, V).scatter_add_(1, self._adv(ids[:, :G]).reshape(Ma, nf), self.ones[:, :nf])
+        w1 = counts * (1.0 / nf)  # each per-ID f1 row stands for count seats of 1/nf each
+        scales = (torch.cat([self.real_scale, w1], 1), self.scales[nf])
+        labels = (self.labels[V], self.labels[nf])
+        for k in range(ds):
+            disc_loss, acc_real, acc_fake, d_fake = 0.0, 0.0, 0.0, 0.0
+            for c in range(2):
+                X[c][:, :ub] = self.U[c].index_select(0, self.real_flat[j * ds + k, c].view(-1)).view(Ma, ub, H)
+                logits, inputs = self._disc_forward(c, X[c])
+                self._disc_backward(c, (torch.sigmoid(logits) - labels[c]) * scales[c], inputs,
+                                    params=True, input_grad=False)
+                if vals is not None:  # as Trainer: the last step's loss, the first step's accuracies
+                    disc_loss = disc_loss + F.binary_cross_entropy_with_logits(
+                        logits, labels[c], reduction="none").mul(scales[c]).sum(1).double() / 2
+                    if k == 0:
+                        real_l, fake_l = logits[:, :ub], logits[:, ub:]
+                        fw = scales[c][:, ub:]
+                        acc_real = acc_real + (real_l > 0).float().mean(1).double() / 2
+                        acc_fake = acc_fake + ((fake_l < 0).float() * fw).sum(1).double() / 2
+                        d_fake = d_fake + (torch.sigmoid(fake_l) * fw).sum(1).double() / 2
+            if vals is not None:
+                vals["disc"] = disc_loss
+                if k == 0:
+                    vals["disc_acc_real"], vals["disc_acc_fake"], vals["d_fake"] = acc_real, acc_fake, d_fake
+            # A member whose discriminators' gradient is not finite is frozen before their Adam step.
+            self.dnet.zero_frozen_grads()
+            if not bool(torch.isfinite(self.dnet.grad.sum())):
+                finite = [bool(torch.isfinite(self.dnet.member_flat(a, self.dnet.grad)).all())
+                          and bool(torch.isfinite(self.dnet.member_flat(Ma + a, self.dnet.grad)).all())
+                          for a in range(Ma)]
+                self._freeze([i for a, i in enumerate(self.adv_rows) if self.active[i] and not finite[a]],
+                             "non-finite discriminator gradient")
+            self.dnet.step()
+        # The model's term: neg_bce -mean softplus(l) (d/dl = -σ/N), non-saturating mean softplus(-l)
+        # (d/dl = (σ - 1)/N), times λ1 of this update.
+        coef = (self.lam_signed[j] / nf).float().view(Ma, 1)
+        grads, unpaired = [], 0.0
+        for c in range(2):
+            logits, inputs = self._disc_forward(c, X[c][:, ub:])
+            dlogits = (torch.sigmoid(logits) - self.ns_float) * coef
+            if c == 0:
+                dlogits = dlogits * counts
+            grads.append(self._disc_backward(c, dlogits, inputs, params=False, input_grad=True))
+            if vals is not None:
+                term = torch.where(self.ns.view(-1, 1), F.softplus(-logits), -F.softplus(logits))
+                unpaired = unpaired + ((term * w1).sum(1) if c == 0 else term.mean(1)).double()
+        if vals is not None:
+            vals["unpaired"] = unpaired
+        return grads[0], grads[1].view(Ma, G, AGENTS, H)
+
+    def _adv(self, t: torch.Tensor) -> torch.Tensor:
+        """The ASP members' rows of a member-stacked tensor (a view when they come first)."""
+        return t[:self.Ma] if self.adv_first else t.index_select(0, self.adv_idx)
+
+    def _disc_forward(self, c: int, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        inputs = [x]
+        layers = self.dlayers[c]
+        last = len(layers) - 1
+        for i, (_, wT, b, _, _) in enumerate(layers):
+            x = torch.baddbmm(b, x, wT)
+            if i < last:
+                x = F.leaky_relu(x, self.slope)
+                inputs.append(x)
+        return x.view(x.shape[0], -1), inputs
+
+    def _disc_backward(self, c: int, dlogits: torch.Tensor, inputs: list[torch.Tensor], params: bool,
+                       input_grad: bool) -> torch.Tensor | None:
+        layers = self.dlayers[c]
+        dy = dlogits.unsqueeze(2)
+        for i in reversed(range(len(layers))):
+            w, _, _, gw, gb = layers[i]
+            if params:
+                torch.bmm(dy.transpose(1, 2), inputs[i], out=gw)
+                torch.sum(dy, 1, out=gb)
+            if i == 0 and not input_grad:
+                return None
+            # the output layer has one unit: its input gradient is an outer product (exact as a product)
+            dy = dy * w if dy.shape[2] == 1 else torch.bmm(dy, w)
+            if i > 0:
+                dy = _leaky_relu_backward(dy, inputs[i], self.slope, True)
+        return dy
+
+    # ---- failures --------------------------------------------------------------------------------
+    def _freeze(self, rows: list[int], why: str) -> None:
+        """Mark members failed and freeze their parameters (and their discriminators) for good."""
+        for i in rows:
+            self.active[i] = False
+            self.members[i].failed_step = self.step
+            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}; member frozen"
+        self.net.freeze(rows)
+        if self.dnet is not None:
+            slots = [a for a, i in enumerate(self.adv_rows) if i in rows]
+            self.dnet.freeze(slots + [self.Ma + a for a in slots])
+
+    # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
+    def _record(self, vals: dict[str, torch.Tensor], j: int, G: int) -> None:
+        V = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        for name, v in vals.items():
+            if name in ("self_play", "paired"):
+                V[:, _COL[name]] = v
+            else:  # ASP members only
+                V[self.adv_idx, _COL[name]] = v.double()
+        V.masked_fill_(~self.present, 0.0)  # a term the member does not have counts 0 in 'total'
+        total = self.w64["self_play"] * V[:, 0] + self.w64["paired"] * V[:, 1]
+        if self.Ma:
+            total[self.adv_idx] += self.lam_now[j] * V[self.adv_idx, 2]
+        V[:, _COL["total"]] = total
+        if not bool(torch.isfinite(V).all()):
+            self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
+                         "non-finite loss")
+        if self.step >= self.window_start:
+            self.loss_sums += V[:, :len(LOSS_TERMS)]
+            self.loss_count += 1
+        if self.in_curve_window():
+            self.curve_sums += V
+            self.curve_count += 1
+
+    def _finish_curve_point(self) -> None:
+        if self.step % self.curve_every and self.step != self.train_steps:
+            return
+        n, sums = self.curve_count, self.curve_sums.tolist()
+        for i, m in enumerate(self.members):
+            if m.failed:
+                continue
+            point = {"step": float(self.step),
+                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
+            if n:
+                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][_COL[k]] / n for k in m.terms})
+            index = len(m.curve)
+            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
+                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
+            m.curve.append(point)
+        self.curve_sums.zero_()
+        self.curve_count = 0
+
+    def loss_columns(self, i: int) -> dict[str, float | None]:
+        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
+        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to continue bit for bit: the draws of the current chunk are re-made from the
+        generators' states at its start."""
+        return {
+            "step": self.step, "net": self.net.state_dict(),
+            "dnet": self.dnet.state_dict() if self.dnet is not None else None,
+            "replay": {"ids": self.r_ids.clone(), "levers": self.r_lev.clone(), "reward": self.r_rew.clone(),
+                       "pos": self.pos, "filled": self.filled},
+            "chunk_start": self.chunk_start,
+            "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
+            else [m.gen.get_state() for m in self.members],
+            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
+            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
+            "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
+                        for m in self.members],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["net"])
+        if self.dnet is not None:
+            self.dnet.load_state_dict(state["dnet"])
+        replay = state["replay"]
+        self.r_ids.copy_(replay["ids"])
+        self.r_lev.copy_(replay["levers"])
+        self.r_rew.copy_(replay["reward"])
+        self.pos, self.filled = replay["pos"], replay["filled"]
+        self.loss_sums.copy_(state["loss_sums"])
+        self.curve_sums.copy_(state["curve_sums"])
+        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
+        for m, saved in zip(self.members, state["members"]):
+            m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
+        for m, g in zip(self.members, state["gens"]):
+            m.gen.set_state(g)
+        self.active = [not m.failed for m in self.members]
+        self._freeze_loaded([i for i, a in enumerate(self.active) if not a])
+        self.step = self.chunk_start = self.chunk_end = state["chunk_start"]
+        if state["step"] > self.step:  # re-make the chunk's draws, continue inside it
+            self._draw_chunk()
+        self.step = state["step"]
+
+    def _freeze_loaded(self, failed: list[int]) -> None:
+        self.net.freeze(failed)
+        if self.dnet is not None:
+            slots = [a for a, i in enumerate(self.adv_rows) if i in failed]
+            self.dnet.freeze(slots + [self.Ma + a for a in slots])
+
+
+# ---- whole cells ---------------------------------------------------------------------------------
+def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None, curves: bool = False,
+             progress: ProgressFn | None = None) -> list[PackedResult]:
+    """run_cell for K lever cells at once: bases, data, one packed training, per-member evaluation.
+
+    bases   trained bases by base_key (as the sweep's base cache hands them out); a missing one is
+            trained here, once per key (its time goes to the first member of that base)
+    curves  record each member's learning curve with probes, as run_cell(curve=[...])
+
+    Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
+    eval are its own; train is the pack's training time divided by the number of members."""
+    specs = [s.resolved() for s in specs]
+    domain = get_domain("levers")
+    bases = dict(bases or {})
+    results = [PackedResult(spec) for spec in specs]
+    timers = [PhaseTimer() for _ in specs]
+    reused = [True] * len(specs)
+    for i, spec in enumerate(specs):
+        if spec.base_key in bases:
+            continue
+        try:
+            with timers[i].phase("base"):
+                bases[spec.base_key] = train_accepted_base(spec, progress)
+            reused[i] = False
+        except BaseRejected as exc:
+            bases[spec.base_key] = None
+            results[i].error = str(exc)
+    live = [i for i, spec in enumerate(specs) if bases.get(spec.base_key) is not None]
+    for i in range(len(specs)):
+        if i not in live and results[i].error is None:
+            results[i].error = f"base {specs[i].base_key} rejected (see the first cell of that base)"
+    if not live:
+        return results
+
+    # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
+    paired, unpaired, agents, data_cache = {}, {}, {}, {}
+    for i in live:
+        spec, base = specs[i], bases[specs[i].base_key]
+        weights = method_weights(spec)
+        with timers[i].phase("data"):
+            key = (spec.base_key, spec.seed_for("data"), spec.paired)
+            if key not in data_cache:
+                gen = torch.Generator().manual_seed(spec.seed_for("data"))
+                p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}
+                data_cache[key] = (p, gen.get_state(), {})
+            p, after_p, u_cache = data_cache[key]
+            paired[i], unpaired[i] = p, {}
+            if weights.needs_adversary:
+                if spec.unpaired_size not in u_cache:
+                    u_cache[spec.unpaired_size] = domain.unpaired(
+                        spec, base.agents, spec.unpaired_size, _generator(after_p))
+                unpaired[i] = u_cache[spec.unpaired_size]
+            agents[i] = domain.new_agents(spec, spec.seed_for("init"))
+
+    # ASP members first: their rows of the pack are then a prefix (views instead of gathers).
+    live.sort(key=lambda i: not method_weights(specs[i]).needs_adversary)
+    wall, cpu = time.perf_counter(), time.process_time()
+    trainer = PackedLeverTrainer([specs[i] for i in live], [paired[i] for i in live],
+                                 [unpaired[i] for i in live], [agents[i] for i in live])
+    paired.clear(), unpaired.clear(), data_cache.clear()  # the pack holds its own (padded) copies
+    if curves:
+        for i, member in zip(live, trainer.members):
+            member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
+    report_every = max(1, trainer.train_steps // 100)
+    while trainer.step < trainer.train_steps:
+        trainer.train_step()
+        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
+            progress("train", trainer.step, trainer.train_steps, {})
+    share_wall = (time.perf_counter() - wall) / len(live)
+    share_cpu = (time.process_time() - cpu) / len(live)
+
+    for k, (i, member) in enumerate(zip(live, trainer.members)):
+        if member.failed:
+            results[i].error = member.error
+            continue
+        spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
+        timer.seconds["time_train_wall_s"] += share_wall
+        timer.seconds["time_train_cpu_s"] += share_cpu
+        with timer.phase("eval"):
+            member.agents.eval()
+            with torch.no_grad():
+                metrics = domain.evaluate(spec, base.agents, member.agents,
+                                          torch.Generator().manual_seed(spec.seed_for("eval")))
+            figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
+        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
+                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
+                                   resumed_from=None)
+        results[i].curve = member.curve if curves else None
+        if progress is not None:
+            progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
+    return results
