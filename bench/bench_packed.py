@@ -44,7 +44,7 @@ from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.fast import choose_trainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
-from asp_dist.training.packed import PackedParticleTrainer  # noqa: E402
+from asp_dist.training.packed.particles import PackedParticleTrainer  # noqa: E402
 
 METHODS, PAIRED = ("pc", "osp", "asp"), range(7)
 

@@ -18,7 +18,8 @@ from asp_dist.training.cell import run_cell
 from asp_dist.training.fast import choose_trainer
 from asp_dist.training.fast.particles import FusedParticleTrainer
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import PackedParticleTrainer, pack_key, run_pack, supports
+from asp_dist.training.packed import pack_key, run_pack, supports
+from asp_dist.training.packed.particles import PackedParticleTrainer
 from asp_dist.training.row import comparable
 
 SMALL = dict(domain="particles", particles_hidden=16, particles_message_dim=12, unpaired_size=64, train_steps=8)

@@ -1,6 +1,7 @@
 """Packed lever training (asp_dist/training/packed/levers.py) against the single-cell path the sweep
 runs for lever cells (the reference Trainer: autograd and torch.optim.Adam): member by member,
-update by update, whole cells, pack-mates, a diverging member and a restored checkpoint."""
+update by update, whole cells, pack-mates, a diverging member and a restored checkpoint
+(of the trainer, and of a whole pack through run_pack)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import json
 
 import pytest
 import torch
-from budgets import tiny_spec
+from budgets import TINY, tiny_spec
 
 import asp_dist.training.packed.levers as packed_mod
 from asp_dist.domains import get_domain
@@ -292,6 +293,42 @@ def test_restore_mid_pack_continues_bit_for_bit(monkeypatch):
         assert torch.equal(resumed.members[i].gen.get_state(), whole.members[i].gen.get_state())
         assert resumed.loss_columns(i) == whole.loss_columns(i)
         assert resumed.members[i].curve == whole.members[i].curve
+
+
+def test_run_pack_restored_mid_run_gives_the_rows_of_an_uninterrupted_run(tiny_bases, monkeypatch):
+    """The whole-cell path: a pack's checkpoint (here after update 9, inside a chunk of draws) taken
+    through torch.save, restored into a new run_pack of the same cells: every member's row and curve
+    are the uninterrupted run's, bit for bit. The members' places in the trainer differ from the
+    specs' order (ASP first), which the checkpoint must not mind."""
+    monkeypatch.setattr(packed_mod, "CHUNK", 4)
+    specs = [tiny_spec("levers", **c) for c in TINY_CELLS]
+    assert method_weights(specs[0]).needs_adversary is False  # a PC member first: the trainer reorders
+    states = []
+
+    def keep(state):
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        states.append(buf.getvalue())
+
+    whole = run_pack(specs, bases=tiny_bases, curves=True, checkpoint=keep, checkpoint_every_steps=3)
+    assert len(states) == (TINY["levers"]["train_steps"] - 1) // 3
+    state = torch.load(io.BytesIO(states[2]), weights_only=False)
+    assert state["cell_ids"] == [s.resolved().cell_id for s in specs] and state["trainer"]["step"] == 9
+    resumed = run_pack(specs, bases=tiny_bases, curves=True, restore=state)
+    for a, b in zip(whole, resumed):
+        assert a.error is None and b.error is None
+        assert comparable(b.row) == comparable(a.row) and b.curve == a.curve
+        assert a.row["resumed_from_step"] is None and b.row["resumed_from_step"] == 9
+
+
+def test_run_pack_refuses_a_checkpoint_of_another_pack(tiny_bases):
+    specs = [tiny_spec("levers", **c) for c in TINY_CELLS[:3]]
+    states = []
+    run_pack(specs, bases=tiny_bases, checkpoint=states.append, checkpoint_every_steps=5)
+    with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
+        run_pack(specs[:2], bases=tiny_bases, restore=states[0])
+    with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
+        run_pack(list(reversed(specs)), bases=tiny_bases, restore=states[0])
 
 
 def test_what_can_share_a_pack():

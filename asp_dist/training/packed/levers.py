@@ -65,28 +65,25 @@ compute the union of the members' work (a PC member rides along in the self-play
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import ProgressFn, Tensors
+from asp_dist.domains.contract import Tensors
 from asp_dist.domains.levers import AGENTS, CommNet, epsilon
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
-from asp_dist.training.cell import PhaseTimer, make_probe
 from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
-from asp_dist.training.packed.particles import PackedResult, _column, _generator, _StackedParams
-from asp_dist.training.row import LOSS_TERMS, build_row
+from asp_dist.training.packed import driver
+from asp_dist.training.packed.stacked import StackedParams, column, retain_freed_memory
+from asp_dist.training.row import LOSS_TERMS
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
 
-__all__ = ["PackedLeverTrainer", "PackedResult", "pack_key", "run_pack", "supports", "SHARED", "TERMS"]
+__all__ = ["PackedLeverTrainer", "pack_key", "run_pack", "supports", "SHARED", "TERMS"]
 
 _tanh_backward = torch.ops.aten.tanh_backward
 
@@ -105,32 +102,6 @@ TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
 _COL = {name: i for i, name in enumerate(TERMS)}
 CHANNELS = ("f1", "f2")  # Adversaries' order (sorted channel names)
 CHUNK = 32  # updates whose random draws are made ahead
-
-
-def retain_freed_memory() -> None:
-    """Keep freed memory in the process's heap (glibc: mmap threshold 32 MiB, trim threshold
-    256 MiB) instead of handing it back to the kernel at every free.
-
-    A pack's intermediate tensors are ~0.1-3 MB each (K × a single cell's). glibc serves blocks
-    over 128 KiB with a fresh mmap and unmaps them on free, and trims the heap top beyond 128 KiB,
-    so with the defaults nearly every op of a packed update page-faults its output into existence
-    (measured: +50 % CPU time per update for 8 ASP members). A single cell's tensors stay under the
-    threshold, which is why its path never paid this. Process-wide and idempotent; peak RSS is
-    unchanged (freed memory is reused, not returned until exit). No-op without glibc's mallopt."""
-    global _MALLOC_DONE
-    if _MALLOC_DONE:
-        return
-    _MALLOC_DONE = True
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    mallopt(-3, 32 << 20)   # M_MMAP_THRESHOLD (its maximum on 64-bit glibc)
-    mallopt(-1, 256 << 20)  # M_TRIM_THRESHOLD
-
-
-_MALLOC_DONE = False
 
 
 def explore(coins: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
@@ -190,6 +161,12 @@ class PackedLeverTrainer:
     `loss_columns(i)` its row's loss_* columns and `members[i].curve` its learning curve (probes:
     set `members[i].probe` as run_cell sets Trainer.probe)."""
 
+    @staticmethod
+    def member_order(specs: Sequence[CellSpec]) -> list[int]:
+        """The members' places in the pack (driver.run_pack): ASP members first, so that their rows
+        of the pack are a prefix (views instead of gathers); otherwise the order given."""
+        return sorted(range(len(specs)), key=lambda i: not method_weights(specs[i]).needs_adversary)
+
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[CommNet]):
         specs = [s.resolved() for s in specs]
@@ -234,7 +211,7 @@ class PackedLeverTrainer:
         self.adv_first = self.adv_rows == list(range(self.Ma))  # run_pack puts the ASP members first
 
         # ---- stacked parameters: the CommNets; the (f1, f2) discriminators of the ASP members ---------
-        self.net = _StackedParams(agents, [m.spec.lr for m in mem])
+        self.net = StackedParams(agents, [m.spec.lr for m in mem])
         self.E, self.W1, self.b1, self.W2, self.b2, self.Wq, self.bq = self.net.views
         (self.g_E, self.g_W1, self.g_b1, self.g_W2, self.g_b2, self.g_Wq, self.g_bq) = self.net.grad_views
         self.W1T, self.W2T, self.WqT = (w.transpose(1, 2) for w in (self.W1, self.W2, self.Wq))
@@ -242,7 +219,7 @@ class PackedLeverTrainer:
         if self.Ma:
             Ma = self.Ma
             # Channel-major: rows [0, Ma) are the f1 discriminators, [Ma, 2Ma) the f2 ones.
-            self.dnet = _StackedParams([d[0] for d in discs] + [d[1] for d in discs],
+            self.dnet = StackedParams([d[0] for d in discs] + [d[1] for d in discs],
                                        [mem[i].spec.disc_lr for i in self.adv_rows] * 2)
             slopes = {m.negative_slope for m in discs[0][0].net if isinstance(m, torch.nn.LeakyReLU)}
             self.slope = slopes.pop() if slopes else 0.01
@@ -275,8 +252,8 @@ class PackedLeverTrainer:
                 ce_w[i, :k] = m.weights.paired / (k * AGENTS)          # cross_entropy: mean over n·3 rows
                 mse_w[i, :k] = 2.0 * m.weights.paired / (k * AGENTS * H)  # mse_loss: mean over n·3·H
         self.p_ce_w, self.p_mse_w = ce_w, mse_w
-        self.inv_n3 = _column([1.0 / (max(m.n_paired, 1) * AGENTS) for m in mem])
-        self.inv_n3H = _column([1.0 / (max(m.n_paired, 1) * AGENTS * H) for m in mem])
+        self.inv_n3 = column([1.0 / (max(m.n_paired, 1) * AGENTS) for m in mem])
+        self.inv_n3H = column([1.0 / (max(m.n_paired, 1) * AGENTS * H) for m in mem])
         if n_max:
             # Scatter of the paired rows' h1 gradients into the per-ID table, as one batched matmul.
             self.p_scatter = F.one_hot(self.p_ids.view(M, -1), V).float().transpose(1, 2).contiguous()
@@ -289,8 +266,8 @@ class PackedLeverTrainer:
         self.r_offset = (torch.arange(M) * self.size).view(M, 1)
         self.pos = self.filled = 0
         # d(w_sp · mse(mean over seats of Q(chosen), reward)) / dQ(chosen) = (value - reward) · 2·w_sp / (3·G)
-        self.sp_coef = {G: _column([2.0 * m.weights.self_play / (AGENTS * G) for m in mem]) for G in (B, 2 * B)}
-        self.w64 = {name: _column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
+        self.sp_coef = {G: column([2.0 * m.weights.self_play / (AGENTS * G) for m in mem]) for G in (B, 2 * B)}
+        self.w64 = {name: column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
                     for name in ("self_play", "paired")}
         self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
 
@@ -307,7 +284,7 @@ class PackedLeverTrainer:
                 self.U.append(U.view(self.Ma * u_max, H))
             self.u_offset = (torch.arange(self.Ma) * u_max).view(self.Ma, 1)
             kinds = [mem[i].spec.adversary_loss for i in self.adv_rows]
-            self.ns_float = _column([k == "non_saturating" for k in kinds])
+            self.ns_float = column([k == "non_saturating" for k in kinds])
             self.ns = self.ns_float.bool().view(-1)
             self.real_scale = torch.full((self.Ma, ub), 1.0 / ub)
             self.labels = {rows: torch.cat([torch.ones(ub), torch.zeros(rows)]).expand(self.Ma, ub + rows)
@@ -736,94 +713,7 @@ class PackedLeverTrainer:
             self.dnet.freeze(slots + [self.Ma + a for a in slots])
 
 
-# ---- whole cells ---------------------------------------------------------------------------------
-def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None, curves: bool = False,
-             progress: ProgressFn | None = None) -> list[PackedResult]:
-    """run_cell for K lever cells at once: bases, data, one packed training, per-member evaluation.
-
-    bases   trained bases by base_key (as the sweep's base cache hands them out); a missing one is
-            trained here, once per key (its time goes to the first member of that base)
-    curves  record each member's learning curve with probes, as run_cell(curve=[...])
-
-    Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
-    eval are its own; train is the pack's training time divided by the number of members."""
-    specs = [s.resolved() for s in specs]
-    domain = get_domain("levers")
-    bases = dict(bases or {})
-    results = [PackedResult(spec) for spec in specs]
-    timers = [PhaseTimer() for _ in specs]
-    reused = [True] * len(specs)
-    for i, spec in enumerate(specs):
-        if spec.base_key in bases:
-            continue
-        try:
-            with timers[i].phase("base"):
-                bases[spec.base_key] = train_accepted_base(spec, progress)
-            reused[i] = False
-        except BaseRejected as exc:
-            bases[spec.base_key] = None
-            results[i].error = str(exc)
-    live = [i for i, spec in enumerate(specs) if bases.get(spec.base_key) is not None]
-    for i in range(len(specs)):
-        if i not in live and results[i].error is None:
-            results[i].error = f"base {specs[i].base_key} rejected (see the first cell of that base)"
-    if not live:
-        return results
-
-    # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
-    paired, unpaired, agents, data_cache = {}, {}, {}, {}
-    for i in live:
-        spec, base = specs[i], bases[specs[i].base_key]
-        weights = method_weights(spec)
-        with timers[i].phase("data"):
-            key = (spec.base_key, spec.seed_for("data"), spec.paired)
-            if key not in data_cache:
-                gen = torch.Generator().manual_seed(spec.seed_for("data"))
-                p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}
-                data_cache[key] = (p, gen.get_state(), {})
-            p, after_p, u_cache = data_cache[key]
-            paired[i], unpaired[i] = p, {}
-            if weights.needs_adversary:
-                if spec.unpaired_size not in u_cache:
-                    u_cache[spec.unpaired_size] = domain.unpaired(
-                        spec, base.agents, spec.unpaired_size, _generator(after_p))
-                unpaired[i] = u_cache[spec.unpaired_size]
-            agents[i] = domain.new_agents(spec, spec.seed_for("init"))
-
-    # ASP members first: their rows of the pack are then a prefix (views instead of gathers).
-    live.sort(key=lambda i: not method_weights(specs[i]).needs_adversary)
-    wall, cpu = time.perf_counter(), time.process_time()
-    trainer = PackedLeverTrainer([specs[i] for i in live], [paired[i] for i in live],
-                                 [unpaired[i] for i in live], [agents[i] for i in live])
-    paired.clear(), unpaired.clear(), data_cache.clear()  # the pack holds its own (padded) copies
-    if curves:
-        for i, member in zip(live, trainer.members):
-            member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
-    report_every = max(1, trainer.train_steps // 100)
-    while trainer.step < trainer.train_steps:
-        trainer.train_step()
-        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
-            progress("train", trainer.step, trainer.train_steps, {})
-    share_wall = (time.perf_counter() - wall) / len(live)
-    share_cpu = (time.process_time() - cpu) / len(live)
-
-    for k, (i, member) in enumerate(zip(live, trainer.members)):
-        if member.failed:
-            results[i].error = member.error
-            continue
-        spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
-        timer.seconds["time_train_wall_s"] += share_wall
-        timer.seconds["time_train_cpu_s"] += share_cpu
-        with timer.phase("eval"):
-            member.agents.eval()
-            with torch.no_grad():
-                metrics = domain.evaluate(spec, base.agents, member.agents,
-                                          torch.Generator().manual_seed(spec.seed_for("eval")))
-            figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
-        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
-                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
-                                   resumed_from=None)
-        results[i].curve = member.curve if curves else None
-        if progress is not None:
-            progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
-    return results
+# ---- whole cells: the driver with this trainer ---------------------------------------------------
+# run_pack(specs, *, bases=None, curves=False, progress=None, checkpoint=None, restore=None,
+#          checkpoint_every_s=30.0, checkpoint_every_steps=None) -> list[PackedResult]: see driver.run_pack.
+run_pack = partial(driver.run_pack, PackedLeverTrainer)

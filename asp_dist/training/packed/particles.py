@@ -49,23 +49,23 @@ buffer, speaker-only paired loss) are not packable: `supports`.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import ProgressFn, Tensors
+from asp_dist.domains.contract import Tensors
 from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
-from asp_dist.training.cell import PhaseTimer, make_probe
 from asp_dist.training.fast.particles import FusedParticleTrainer
 from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
-from asp_dist.training.row import LOSS_TERMS, build_row
+from asp_dist.training.packed import driver
+from asp_dist.training.packed.stacked import StackedParams, column
+from asp_dist.training.row import LOSS_TERMS
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
 
 _tanh_backward = torch.ops.aten.tanh_backward
@@ -79,8 +79,6 @@ SHARED = ("domain", "train_steps", "batch_size", "particles_episode_len", "parti
 TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
 _COL = {name: i for i, name in enumerate(TERMS)}
 CHUNK = 128  # updates whose random draws are made ahead
-BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's and FlatAdam's defaults
-PACK_CHECKPOINT_VERSION = 1
 
 
 def supports(spec: CellSpec) -> bool:
@@ -140,12 +138,6 @@ class _Rollout(NamedTuple):
     critic_hidden: torch.Tensor
 
 
-def _column(values: Sequence[float], *, dims: int = 2, dtype=torch.float32) -> torch.Tensor:
-    """Per-member scalars as a (M, 1[, 1]) tensor; float32 rounding of each Python float, as
-    a Python scalar gets in an op with a float32 tensor."""
-    return torch.tensor(list(values), dtype=dtype).view(-1, *([1] * (dims - 1)))
-
-
 def _lin_back(dy: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, grad_weight: torch.Tensor | None,
               grad_bias: torch.Tensor | None, need_input_grad: bool = True) -> torch.Tensor | None:
     """Batched y = x·Wᵀ + b: write dW and db into their (member-stacked) gradient views, return dx."""
@@ -153,93 +145,6 @@ def _lin_back(dy: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, grad_weig
         torch.bmm(dy.transpose(1, 2), x, out=grad_weight)
         torch.sum(dy, 1, out=grad_bias)
     return torch.bmm(dy, weight) if need_input_grad else None
-
-
-class _StackedParams:
-    """The parameters of M modules of one architecture, stacked: each parameter tensor becomes a
-    contiguous (M, *shape) block of one flat buffer (tensor-major, so that batched matmuls write
-    their gradients into contiguous blocks), with a matching gradient buffer and Adam moments.
-    Each module's parameters are re-pointed to views of its slice of the blocks (as FlatAdam does
-    for one module), so the modules see every update."""
-
-    def __init__(self, modules: Sequence[torch.nn.Module], lrs: Sequence[float]):
-        shapes = [tuple(p.shape) for p in modules[0].parameters()]
-        sizes = [int(torch.Size(s).numel()) for s in shapes]
-        M, total = len(modules), len(modules) * sum(sizes)
-        self.param, self.grad = torch.zeros(total), torch.zeros(total)
-        self.exp_avg, self.exp_avg_sq = torch.zeros(total), torch.zeros(total)
-        self.steps = torch.zeros(())  # every active member steps together
-        self.lrs = list(lrs)
-        self.views: list[torch.Tensor] = []       # (M, *shape); biases as (M, 1, out) for baddbmm
-        self.grad_views: list[torch.Tensor] = []  # (M, *shape)
-        self.member_ranges: list[list[tuple[int, int]]] = [[] for _ in range(M)]
-        offset = 0
-        for shape, n in zip(shapes, sizes):
-            block = self.param[offset:offset + M * n].view(M, *shape)
-            self.views.append(block.unsqueeze(1) if len(shape) == 1 else block)
-            self.grad_views.append(self.grad[offset:offset + M * n].view(M, *shape))
-            for i in range(M):
-                self.member_ranges[i].append((offset + i * n, n))
-            offset += M * n
-        for i, module in enumerate(modules):
-            params = list(module.parameters())
-            if [tuple(p.shape) for p in params] != shapes:
-                raise ValueError("modules of a pack must have the same parameter shapes")
-            for p, (start, n) in zip(params, self.member_ranges[i]):
-                row = self.param[start:start + n].view_as(p)
-                row.copy_(p.detach())
-                p.data = row
-        self.frozen = torch.zeros(0, dtype=torch.long)
-        self._group_by_lr()
-
-    def member_flat(self, i: int, buffer: torch.Tensor | None = None) -> torch.Tensor:
-        """Member i's values of `buffer` (default: the parameters) in its module's parameter order."""
-        buffer = self.param if buffer is None else buffer
-        return torch.cat([buffer[start:start + n] for start, n in self.member_ranges[i]])
-
-    def _group_by_lr(self) -> None:
-        """Adam's calls: the whole buffer when every member has one learning rate, else one call
-        per learning rate over the slices of its members."""
-        if len(set(self.lrs)) == 1:
-            self.groups = [(self.lrs[0], [self.param], [self.grad], [self.exp_avg], [self.exp_avg_sq])]
-            return
-        self.groups = []
-        for lr in sorted(set(self.lrs)):
-            ranges = [r for i, x in enumerate(self.lrs) if x == lr for r in self.member_ranges[i]]
-            self.groups.append((lr, *([buf[start:start + n] for start, n in ranges]
-                                      for buf in (self.param, self.grad, self.exp_avg, self.exp_avg_sq))))
-
-    def freeze(self, rows: Sequence[int]) -> None:
-        """Members whose parameters Adam must leave as they are: their momentum is cleared here
-        and their gradients before every step (zero_frozen_grads), so every update of theirs is
-        exactly 0 while the calls, and so every other member's arithmetic, stay the same."""
-        for i in rows:
-            for start, n in self.member_ranges[i]:
-                self.exp_avg[start:start + n] = 0.0
-        self.frozen = torch.tensor(sorted(set(self.frozen.tolist()) | set(rows)), dtype=torch.long)
-
-    def zero_frozen_grads(self) -> None:
-        if len(self.frozen):
-            for g in self.grad_views:
-                g.index_fill_(0, self.frozen, 0.0)
-
-    def step(self) -> None:
-        """One Adam step of every member from the current contents of `grad` (torch's fused Adam
-        kernel: one pass over the buffer; FlatAdam's arithmetic up to rounding)."""
-        self.zero_frozen_grads()
-        self.steps.add_(1)
-        for lr, params, grads, avgs, sqs in self.groups:
-            torch._fused_adam_(params, grads, avgs, sqs, [], [self.steps] * len(params), lr=lr, beta1=BETAS[0],
-                               beta2=BETAS[1], weight_decay=0.0, eps=EPS, amsgrad=False, maximize=False)
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        return {"param": self.param.clone(), "exp_avg": self.exp_avg.clone(), "exp_avg_sq": self.exp_avg_sq.clone(),
-                "steps": self.steps.clone()}
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        for name in ("param", "exp_avg", "exp_avg_sq", "steps"):
-            getattr(self, name).copy_(state[name])
-        self.frozen = torch.zeros(0, dtype=torch.long)
 
 
 class PackedParticleTrainer:
@@ -251,6 +156,11 @@ class PackedParticleTrainer:
     `members[i].agents` holds its trained weights, `loss_columns(i)` its row's loss_* columns and
     `members[i].curve` its learning curve (probes: set `members[i].probe` as run_cell sets
     Trainer.probe)."""
+
+    @staticmethod
+    def member_order(specs: Sequence[CellSpec]) -> list[int]:
+        """The members' places in the pack (driver.run_pack): the order given."""
+        return list(range(len(specs)))
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[ParticleAgents]):
@@ -296,7 +206,7 @@ class PackedParticleTrainer:
         self.all_adv = self.Ma == M
 
         # ---- stacked parameters: speaker, listener, critic; discriminators of the ASP members --------
-        self.net = _StackedParams(agents, [m.spec.lr for m in mem])
+        self.net = StackedParams(agents, [m.spec.lr for m in mem])
         (self.sw1, self.sb1, self.sw2, self.sb2, self.lw1, self.lb1, self.lw2, self.lb2,
          self.cw1, self.cb1, self.cw2, self.cb2) = self.net.views
         (self.g_sw1, self.g_sb1, self.g_sw2, self.g_sb2, self.g_lw1, self.g_lb1, self.g_lw2, self.g_lb2,
@@ -305,7 +215,7 @@ class PackedParticleTrainer:
             w.transpose(1, 2) for w in (self.sw1, self.sw2, self.lw1, self.lw2, self.cw1, self.cw2))
         self.dnet = None
         if self.Ma:
-            self.dnet = _StackedParams(discs, [mem[i].spec.disc_lr for i in self.adv_rows])
+            self.dnet = StackedParams(discs, [mem[i].spec.disc_lr for i in self.adv_rows])
             slopes = {m.negative_slope for m in discs[0].net if isinstance(m, torch.nn.LeakyReLU)}
             self.slope = slopes.pop() if slopes else 0.01
             v, g = self.dnet.views, self.dnet.grad_views
@@ -331,16 +241,16 @@ class PackedParticleTrainer:
                 pw[i, :k] = m.weights.paired / k
                 pmw[i, :k] = 2.0 * m.weights.paired / (k * D)
         self.pw, self.pmw = pw, pmw
-        self.inv_n = _column([1.0 / max(m.n_paired, 1) for m in mem])
-        self.inv_nD = _column([1.0 / (max(m.n_paired, 1) * D) for m in mem])
+        self.inv_n = column([1.0 / max(m.n_paired, 1) for m in mem])
+        self.inv_nD = column([1.0 / (max(m.n_paired, 1) * D) for m in mem])
         sp = [m.spec for m in mem]
-        self.sp_scale = _column([m.weights.self_play / N for m in mem], dims=3)
-        self.ent3 = _column([s.particles_entropy for s in sp], dims=3)
-        self.ent2 = _column([s.particles_entropy for s in sp])
-        self.vc2 = _column([s.particles_value_coef for s in sp])
-        self.dv_scale = _column([-2.0 * s.particles_value_coef * m.weights.self_play / N for s, m in zip(sp, mem)])
-        self.gamma = _column([s.particles_gamma for s in sp])
-        self.w64 = {name: _column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
+        self.sp_scale = column([m.weights.self_play / N for m in mem], dims=3)
+        self.ent3 = column([s.particles_entropy for s in sp], dims=3)
+        self.ent2 = column([s.particles_entropy for s in sp])
+        self.vc2 = column([s.particles_value_coef for s in sp])
+        self.dv_scale = column([-2.0 * s.particles_value_coef * m.weights.self_play / N for s, m in zip(sp, mem)])
+        self.gamma = column([s.particles_gamma for s in sp])
+        self.w64 = {name: column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
                     for name in ("self_play", "paired")}
         self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
 
@@ -372,7 +282,7 @@ class PackedParticleTrainer:
             self.disc_labels = torch.cat([torch.ones(ub), torch.zeros(N)]).expand(self.Ma, ub + N)
             self.disc_scale = torch.cat([torch.full((ub,), 1.0 / ub), torch.full((N,), 1.0 / N)])
             kinds = [mem[i].spec.adversary_loss for i in self.adv_rows]
-            self.ns_float = _column([k == "non_saturating" for k in kinds])
+            self.ns_float = column([k == "non_saturating" for k in kinds])
             self.ns = self.ns_float.bool()
             self.any_ns = any(k == "non_saturating" for k in kinds)
             self.adv_spread = torch.zeros(M, N, D)
@@ -737,144 +647,7 @@ class PackedParticleTrainer:
                 offset += size
 
 
-# ---- whole cells ---------------------------------------------------------------------------------
-def _generator(state: torch.Tensor) -> torch.Generator:
-    gen = torch.Generator()
-    gen.set_state(state)
-    return gen
-
-
-@dataclass
-class PackedResult:
-    """One member's outcome: its result row (as run_cell's) and curve, or why it failed."""
-
-    spec: CellSpec
-    row: dict[str, Any] | None = None
-    curve: list[dict[str, float]] | None = None
-    error: str | None = None
-
-
-def run_pack(specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None, curves: bool = False,
-             progress: ProgressFn | None = None, checkpoint: Callable[[dict], None] | None = None,
-             restore: dict | None = None, checkpoint_every_s: float = 30.0,
-             checkpoint_every_steps: int | None = None) -> list[PackedResult]:
-    """run_cell for K packable cells at once: bases, data, one packed training, per-member evaluation.
-
-    bases       trained bases by base_key (as the sweep's base cache hands them out); a missing one is
-                trained here, once per key (its time goes to the first member of that base)
-    curves      record each member's learning curve with probes, as run_cell(curve=[...])
-    checkpoint  called with the pack's full training state every `checkpoint_every_steps` updates, or
-                every `checkpoint_every_s` seconds when no step interval is given (as run_cell's)
-    restore     a state previously passed to `checkpoint` by a pack of the same cells (and the same
-                rejected bases): training continues from it, and every member's row equals the one an
-                uninterrupted run gives (resumed_from_step says where it continued)
-
-    Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
-    eval are its own; train is the pack's training time divided by the number of members."""
-    specs = [s.resolved() for s in specs]
-    domain = get_domain("particles")
-    bases = dict(bases or {})
-    results = [PackedResult(spec) for spec in specs]
-    timers = [PhaseTimer() for _ in specs]
-    reused = [True] * len(specs)
-    for i, spec in enumerate(specs):
-        if spec.base_key in bases:
-            continue
-        try:
-            with timers[i].phase("base"):
-                bases[spec.base_key] = train_accepted_base(spec, progress)
-            reused[i] = False
-        except BaseRejected as exc:
-            bases[spec.base_key] = None
-            results[i].error = str(exc)
-    live = [i for i, spec in enumerate(specs) if bases.get(spec.base_key) is not None]
-    for i in range(len(specs)):
-        if i not in live and results[i].error is None:
-            results[i].error = f"base {specs[i].base_key} rejected (see the first cell of that base)"
-    if not live:
-        return results
-
-    # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
-    paired, unpaired, agents, data_cache = {}, {}, {}, {}
-    for i in live:
-        spec, base = specs[i], bases[specs[i].base_key]
-        weights = method_weights(spec)
-        with timers[i].phase("data"):
-            key = (spec.base_key, spec.seed_for("data"), spec.paired)
-            if key not in data_cache:
-                gen = torch.Generator().manual_seed(spec.seed_for("data"))
-                p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}
-                data_cache[key] = (p, gen.get_state(), {})
-            p, after_p, u_cache = data_cache[key]
-            paired[i], unpaired[i] = p, {}
-            if weights.needs_adversary:
-                if spec.unpaired_size not in u_cache:
-                    u_cache[spec.unpaired_size] = domain.unpaired(
-                        spec, base.agents, spec.unpaired_size, _generator(after_p))
-                unpaired[i] = u_cache[spec.unpaired_size]
-            agents[i] = domain.new_agents(spec, spec.seed_for("init"))
-
-    live_ids = [specs[i].cell_id for i in live]
-    if restore is not None and restore.get("cell_ids") != live_ids:
-        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
-    wall, cpu = time.perf_counter(), time.process_time()
-    trainer = PackedParticleTrainer([specs[i] for i in live], [paired[i] for i in live],
-                                    [unpaired[i] for i in live], [agents[i] for i in live])
-    paired.clear(), unpaired.clear(), data_cache.clear()  # the pack holds its own (padded) copies
-    if curves:
-        for i, member in zip(live, trainer.members):
-            member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
-    resumed_from = None
-    if restore is not None:
-        trainer.load_state_dict(restore["trainer"])
-        resumed_from = trainer.step
-        for i, carried in zip(live, restore["timings"]):
-            for name, seconds in carried.items():
-                timers[i].seconds[name] += seconds
-
-    def save_state() -> None:
-        share = {"time_train_wall_s": (time.perf_counter() - wall) / len(live),
-                 "time_train_cpu_s": (time.process_time() - cpu) / len(live)}
-        timings = []
-        for i in live:  # each member's phases so far, with its share of the pack's training up to now
-            seconds = dict(timers[i].seconds)
-            for name, value in share.items():
-                seconds[name] = seconds.get(name, 0.0) + value
-            timings.append(seconds)
-        checkpoint({"version": PACK_CHECKPOINT_VERSION, "cell_ids": live_ids, "trainer": trainer.state_dict(),
-                    "timings": timings})
-
-    report_every = max(1, trainer.train_steps // 100)
-    last_save = time.monotonic()
-    while trainer.step < trainer.train_steps:
-        trainer.train_step()
-        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
-            progress("train", trainer.step, trainer.train_steps, {})
-        if checkpoint is not None and trainer.step < trainer.train_steps:
-            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
-                (time.monotonic() - last_save >= checkpoint_every_s)
-            if due:
-                save_state()
-                last_save = time.monotonic()
-    share_wall = (time.perf_counter() - wall) / len(live)
-    share_cpu = (time.process_time() - cpu) / len(live)
-
-    for k, (i, member) in enumerate(zip(live, trainer.members)):
-        if member.failed:
-            results[i].error = member.error
-            continue
-        spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
-        timer.seconds["time_train_wall_s"] += share_wall
-        timer.seconds["time_train_cpu_s"] += share_cpu
-        with timer.phase("eval"):
-            member.agents.eval()
-            metrics = domain.evaluate(spec, base.agents, member.agents,
-                                      torch.Generator().manual_seed(spec.seed_for("eval")))
-            figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
-        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
-                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
-                                   resumed_from=resumed_from)
-        results[i].curve = member.curve if curves else None
-        if progress is not None:
-            progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
-    return results
+# ---- whole cells: the driver with this trainer ---------------------------------------------------
+# run_pack(specs, *, bases=None, curves=False, progress=None, checkpoint=None, restore=None,
+#          checkpoint_every_s=30.0, checkpoint_every_steps=None) -> list[PackedResult]: see driver.run_pack.
+run_pack = partial(driver.run_pack, PackedParticleTrainer)

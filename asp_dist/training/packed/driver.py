@@ -1,0 +1,226 @@
+"""run_pack: run_cell for K cells of one domain at once, whatever the domain's packed trainer.
+
+    bases    each member's base from `bases` (the sweep's cache) or trained here, once per key
+    data     P and U per (base, data seed, paired count), sampled once in run_cell's order, shared
+             by the methods; fresh agents per member
+    train    one packed trainer of the members whose base was accepted, checkpointed and restored
+             as a whole
+    eval     per member, as run_cell evaluates a cell; one row per member (build_row)
+
+A domain's packed module (asp_dist.training.packed.<domain>) brings its trainer, a class that
+follows `PackTrainer` below, and binds it here: ``run_pack = partial(driver.run_pack, MyTrainer)``.
+Everything else is the same for every domain and lives here.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol, Sequence
+
+import torch
+
+from asp_dist.domains import get_domain
+from asp_dist.domains.contract import ProgressFn, Tensors
+from asp_dist.spec import CellSpec
+from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
+from asp_dist.training.cell import PhaseTimer, make_probe
+from asp_dist.training.methods import method_weights
+from asp_dist.training.row import build_row
+
+PACK_CHECKPOINT_VERSION = 1
+
+
+class PackMember(Protocol):
+    """What the driver reads and sets on a member of a packed trainer."""
+
+    agents: torch.nn.Module
+    probe: Callable[[int], dict[str, float]] | None
+    curve: list[dict[str, float]]
+    error: str | None
+
+    @property
+    def failed(self) -> bool: ...
+
+
+class PackTrainer(Protocol):
+    """A domain's packed trainer, as the driver uses it (PackedParticleTrainer, PackedLeverTrainer).
+
+    Constructed from one spec, paired set, unpaired set and fresh agents per member, in the order
+    member_order() gives; after train_step() has run train_steps times, member i's agents hold its
+    trained weights and loss_columns(i) its row's loss_* columns. state_dict() is everything to
+    continue bit for bit after load_state_dict() on a trainer built from the same inputs."""
+
+    members: Sequence[PackMember]
+    step: int
+    train_steps: int
+
+    def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
+                 agents: Sequence[torch.nn.Module]) -> None: ...
+
+    @staticmethod
+    def member_order(specs: Sequence[CellSpec]) -> list[int]:
+        """The members' places in the trainer: indices into `specs` (a trainer may want, say, the
+        members with a discriminator first)."""
+
+    def train_step(self) -> None: ...
+
+    def loss_columns(self, i: int) -> dict[str, float | None]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@dataclass
+class PackedResult:
+    """One member's outcome: its result row (as run_cell's) and curve, or why it failed."""
+
+    spec: CellSpec
+    row: dict[str, Any] | None = None
+    curve: list[dict[str, float]] | None = None
+    error: str | None = None
+
+
+def generator_from_state(state: torch.Tensor) -> torch.Generator:
+    """A new CPU generator in the given state (the state itself is not shared)."""
+    gen = torch.Generator()
+    gen.set_state(state)
+    return gen
+
+
+def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bases: dict[str, BaseModel] | None = None,
+             curves: bool = False, progress: ProgressFn | None = None, checkpoint: Callable[[dict], None] | None = None,
+             restore: dict | None = None, checkpoint_every_s: float = 30.0,
+             checkpoint_every_steps: int | None = None) -> list[PackedResult]:
+    """run_cell for K cells of one domain at once: bases, data, one packed training, per-member evaluation.
+
+    trainer_class  the domain's packed trainer (a domain module binds it: its own run_pack)
+    bases       trained bases by base_key (as the sweep's base cache hands them out); a missing one is
+                trained here, once per key (its time goes to the first member of that base)
+    curves      record each member's learning curve with probes, as run_cell(curve=[...])
+    checkpoint  called with the pack's full training state every `checkpoint_every_steps` updates, or
+                every `checkpoint_every_s` seconds when no step interval is given (as run_cell's)
+    restore     a state previously passed to `checkpoint` by a pack of the same cells (and the same
+                rejected bases): training continues from it, and every member's row equals the one an
+                uninterrupted run gives (resumed_from_step says where it continued); a state of
+                another pack is refused (ValueError)
+
+    Returns one PackedResult per spec, in order. Phase timings in a member's row: base, data and
+    eval are its own; train is the pack's training time divided by the number of members."""
+    specs = [s.resolved() for s in specs]
+    if not specs:
+        return []
+    domains = sorted({s.domain for s in specs})
+    if len(domains) > 1:
+        raise ValueError(f"a pack holds cells of one domain, got {', '.join(domains)}")
+    domain = get_domain(domains[0])
+    bases = dict(bases or {})
+    results = [PackedResult(spec) for spec in specs]
+    timers = [PhaseTimer() for _ in specs]
+    reused = [True] * len(specs)
+    for i, spec in enumerate(specs):
+        if spec.base_key in bases:
+            continue
+        try:
+            with timers[i].phase("base"):
+                bases[spec.base_key] = train_accepted_base(spec, progress)
+            reused[i] = False
+        except BaseRejected as exc:
+            bases[spec.base_key] = None
+            results[i].error = str(exc)
+    live = [i for i, spec in enumerate(specs) if bases.get(spec.base_key) is not None]
+    for i in range(len(specs)):
+        if i not in live and results[i].error is None:
+            results[i].error = f"base {specs[i].base_key} rejected (see the first cell of that base)"
+    if not live:
+        return results
+
+    # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
+    paired, unpaired, agents, data_cache = {}, {}, {}, {}
+    for i in live:
+        spec, base = specs[i], bases[specs[i].base_key]
+        weights = method_weights(spec)
+        with timers[i].phase("data"):
+            key = (spec.base_key, spec.seed_for("data"), spec.paired)
+            if key not in data_cache:
+                gen = torch.Generator().manual_seed(spec.seed_for("data"))
+                p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}
+                data_cache[key] = (p, gen.get_state(), {})
+            p, after_p, u_cache = data_cache[key]
+            paired[i], unpaired[i] = p, {}
+            if weights.needs_adversary:
+                if spec.unpaired_size not in u_cache:
+                    u_cache[spec.unpaired_size] = domain.unpaired(
+                        spec, base.agents, spec.unpaired_size, generator_from_state(after_p))
+                unpaired[i] = u_cache[spec.unpaired_size]
+            agents[i] = domain.new_agents(spec, spec.seed_for("init"))
+
+    # A checkpoint names its pack by the live members' cell ids in the order of `specs` (the sweep
+    # compares them with its own); the trainer's state is in the trainer's order, which follows.
+    live_ids = [specs[i].cell_id for i in live]
+    if restore is not None and restore.get("cell_ids") != live_ids:
+        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
+    order = [live[k] for k in trainer_class.member_order([specs[i] for i in live])]
+    wall, cpu = time.perf_counter(), time.process_time()
+    trainer = trainer_class([specs[i] for i in order], [paired[i] for i in order], [unpaired[i] for i in order],
+                            [agents[i] for i in order])
+    paired.clear(), unpaired.clear(), data_cache.clear()  # the pack holds its own (padded) copies
+    if curves:
+        for i, member in zip(order, trainer.members):
+            member.probe = make_probe(specs[i], domain, bases[specs[i].base_key], member.agents)
+    resumed_from = None
+    if restore is not None:
+        trainer.load_state_dict(restore["trainer"])
+        resumed_from = trainer.step
+        for i, carried in zip(live, restore["timings"]):
+            for name, seconds in carried.items():
+                timers[i].seconds[name] += seconds
+
+    def save_state() -> None:
+        share = {"time_train_wall_s": (time.perf_counter() - wall) / len(live),
+                 "time_train_cpu_s": (time.process_time() - cpu) / len(live)}
+        timings = []
+        for i in live:  # each member's phases so far, with its share of the pack's training up to now
+            seconds = dict(timers[i].seconds)
+            for name, value in share.items():
+                seconds[name] = seconds.get(name, 0.0) + value
+            timings.append(seconds)
+        checkpoint({"version": PACK_CHECKPOINT_VERSION, "cell_ids": live_ids, "trainer": trainer.state_dict(),
+                    "timings": timings})
+
+    report_every = max(1, trainer.train_steps // 100)
+    last_save = time.monotonic()
+    while trainer.step < trainer.train_steps:
+        trainer.train_step()
+        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
+            progress("train", trainer.step, trainer.train_steps, {})
+        if checkpoint is not None and trainer.step < trainer.train_steps:
+            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
+                (time.monotonic() - last_save >= checkpoint_every_s)
+            if due:
+                save_state()
+                last_save = time.monotonic()
+    share_wall = (time.perf_counter() - wall) / len(live)
+    share_cpu = (time.process_time() - cpu) / len(live)
+
+    for k, (i, member) in enumerate(zip(order, trainer.members)):
+        if member.failed:
+            results[i].error = member.error
+            continue
+        spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
+        timer.seconds["time_train_wall_s"] += share_wall
+        timer.seconds["time_train_cpu_s"] += share_cpu
+        with timer.phase("eval"):
+            member.agents.eval()
+            with torch.no_grad():
+                metrics = domain.evaluate(spec, base.agents, member.agents,
+                                          torch.Generator().manual_seed(spec.seed_for("eval")))
+            figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
+        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
+                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
+                                   resumed_from=resumed_from)
+        results[i].curve = member.curve if curves else None
+        if progress is not None:
+            progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})
+    return results
