@@ -6,7 +6,8 @@ Fast tests (no Ray): the packs as a function of the grid; the flags and the pack
 manifest; bad flags are one line, exit 2, nothing written; rows written before the `pack` column
 existed still read; the pack trainable outside Ray (tune.report faked, as test_sweep_lifecycle does)
 gives run_pack's rows, records a member whose base is rejected as that member's failure, continues a
-pack from its checkpoint and writes only the members without a row; the same on S3 (moto).
+pack from its checkpoint and writes only the members without a row; the same on S3 (moto); every
+domain registered in PACKED keeps the registry's contract and runs and restores a tiny pack.
 
 Slow tests (Ray, CLI subprocesses, each on its own Ray temp dir): a mixed particle + signaling space
 swept with --pack trial and without; a packed sweep whose driver is SIGKILLed while a pack is
@@ -15,6 +16,7 @@ mid-run, then resumed.
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 import shutil
@@ -28,7 +30,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from budgets import TINY
+from budgets import TINY, tiny_spec
 
 from asp_dist.cli import main
 from asp_dist.errors import SweepError
@@ -39,7 +41,7 @@ from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import get_base, rejected_path
 from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing
 from asp_dist.sweep.spaces import expand
-from asp_dist.training.packed import run_pack
+from asp_dist.training.packed import PACKED, pack_key, packed_module, run_pack, supports
 from asp_dist.training.row import comparable
 from asp_dist.training.row import schema as row_schema
 
@@ -309,6 +311,40 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
     fake.reports = []
     sweep_tune.train_cell(config)
     assert fake.reports == [{"cell_done": 1, "skipped": 1}]
+
+
+@pytest.mark.parametrize("domain", sorted(PACKED))
+def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path):
+    """The registry's contract, for every domain in PACKED: supports / pack_key / run_pack with the
+    checkpoint arguments; a tiny pack of the domain (one cell per method) trained by the sweep's
+    trainable gives run_pack's rows, and continued from a mid-run checkpoint gives them again."""
+    module = packed_module(domain)
+    assert all(callable(getattr(module, name, None)) for name in ("supports", "pack_key", "run_pack"))
+    params = inspect.signature(module.run_pack).parameters
+    assert {"bases", "curves", "progress", "checkpoint", "restore", "checkpoint_every_s"} <= set(params)
+    sweep_tune, fake = trainable
+    specs = [tiny_spec(domain, method=m, paired=2, trial=0).resolved() for m in ("pc", "osp", "asp")]
+    assert all(supports(s) for s in specs) and len({pack_key(s) for s in specs}) == 1
+    (unit,) = make_units(specs, Packing("trial", 21))
+    assert unit.pack_id is not None and len(unit.specs) == 3
+    sweep_dir = tmp_path / "exp"
+    config = {"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e-9)}  # a checkpoint after every update
+
+    sweep_tune.train_cell(config)
+    steps = TINY[domain]["train_steps"]
+    assert len(fake.saved) == steps - 1 and fake.reports[-1]["cells_written"] == 3
+    expected = direct_rows([unit], store.bases_dir(sweep_dir))
+    assert_rows(store.read_rows(sweep_dir), expected)
+
+    for spec in unit.specs[1:]:  # two members lost: continue from the checkpoint after update steps // 2
+        store.cell_path(sweep_dir, spec.domain, spec.method, spec.cell_id).unlink()
+        store.curve_path(sweep_dir, spec.domain, spec.method, spec.cell_id).unlink()
+    fake.restore_from, fake.reports = fake.saved[steps // 2 - 1], []
+    sweep_tune.train_cell(config)
+    rows = store.read_rows(sweep_dir).set_index("cell_id", drop=False)
+    assert set(rows.loc[unit.cell_ids[1:], "resumed_from_step"]) == {steps // 2}
+    assert_rows(rows, expected)
+    assert fake.reports[-1]["cells_written"] == 2
 
 
 def test_a_rejected_base_fails_its_members_only(trainable, tmp_path):

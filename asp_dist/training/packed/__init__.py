@@ -38,6 +38,7 @@ from asp_dist.training.packed.driver import PackedResult
 # domain -> module with supports / pack_key / run_pack. One line registers a domain's packed trainer.
 PACKED: dict[str, str] = {
     "particles": "asp_dist.training.packed.particles",
+    "levers": "asp_dist.training.packed.levers",
 }
 
 
