@@ -19,7 +19,7 @@ both. On a shared machine the CPU-time ratio is the steadier one.
 Peak RSS is read after the packed phase (before any single trainer exists); the K = 1 process
 first measures a worker of today's sweep: one ASP cell (the largest: U and two discriminators)
 and nothing else. Creating a pack also raises glibc's mmap/trim thresholds for the process
-(levers.retain_freed_memory); the single path's timings are the same with or without that.
+(stacked.retain_freed_memory); the single path's timings are the same with or without that.
 The base of each trial is an untrained CommNet (an update costs the same whatever the base
 taught); P and U are sampled from it as run_cell samples them. Updates are timed after 20 warm-up
 updates (the replay buffer holds games from then on, as in 99.9 % of a cell's updates); about 1 in
