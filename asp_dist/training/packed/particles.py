@@ -62,11 +62,9 @@ from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAge
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.fast.particles import FusedParticleTrainer
-from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
+from asp_dist.training.methods import LossWeights, method_weights
 from asp_dist.training.packed import driver
-from asp_dist.training.packed.stacked import StackedParams, column
-from asp_dist.training.row import LOSS_TERMS
-from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+from asp_dist.training.packed.stacked import TERMS, PackRecords, StackedParams, column
 
 _tanh_backward = torch.ops.aten.tanh_backward
 _threshold_backward = torch.ops.aten.threshold_backward
@@ -75,9 +73,6 @@ _leaky_relu_backward = torch.ops.aten.leaky_relu_backward
 # Fields every member of a pack shares: they fix the tensor shapes and the loop.
 SHARED = ("domain", "train_steps", "batch_size", "particles_episode_len", "particles_rollout_len",
           "particles_message_dim", "particles_hidden", "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
-# What each member records per update (the fused trainer's diagnostics), in column order.
-TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
-_COL = {name: i for i, name in enumerate(TERMS)}
 CHUNK = 128  # updates whose random draws are made ahead
 
 
@@ -147,7 +142,7 @@ def _lin_back(dy: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, grad_weig
     return torch.bmm(dy, weight) if need_input_grad else None
 
 
-class PackedParticleTrainer:
+class PackedParticleTrainer(PackRecords):
     """K particle cells as one batched model; train_step() is one update of every member.
 
     specs, paired, unpaired, agents: one entry per member, as the single-cell trainer gets them
@@ -288,17 +283,7 @@ class PackedParticleTrainer:
             self.adv_spread = torch.zeros(M, N, D)
 
         # ---- bookkeeping, as Trainer's -------------------------------------------------------------
-        self.step = 0
-        self.window_start = int(0.9 * self.train_steps)
-        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
-        self.curve_window = max(1, self.curve_every // 10)
-        self.loss_sums = torch.zeros(M, len(LOSS_TERMS), dtype=torch.float64)
-        self.loss_count = 0
-        self.curve_sums = torch.zeros(M, len(TERMS), dtype=torch.float64)
-        self.curve_count = 0
-        self.active = [True] * M
-        self.chunk_start = self.chunk_end = 0
-        self.chunk_gen_states: list[torch.Tensor] = []
+        self._init_records()
         self._alloc_draws()
 
     # ---- random draws, made ahead per member in the single-cell order ---------------------------
@@ -398,12 +383,6 @@ class PackedParticleTrainer:
                         values[:, :Kr * B], cat(returns[::-1]), feats[:, :Kr * B], hc[:, :Kr * B])
 
     # ---- one update of every member -------------------------------------------------------------
-    def in_curve_window(self) -> bool:
-        return (-self.step - 1) % self.curve_every < self.curve_window
-
-    def recording(self) -> bool:
-        return self.step >= self.window_start or self.in_curve_window()
-
     @torch.no_grad()
     def train_step(self) -> None:
         if self.step >= self.train_steps:
@@ -537,99 +516,19 @@ class PackedParticleTrainer:
                 dy = _leaky_relu_backward(dy, inputs[i], self.slope, True)
         return dy if input_grad else None
 
-    # ---- failures --------------------------------------------------------------------------------
-    def _freeze(self, rows: list[int], why: str) -> None:
-        """Mark members failed and freeze their parameters (and their discriminators) for good."""
-        for i in rows:
-            self.active[i] = False
-            self.members[i].failed_step = self.step
-            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}; member frozen"
+    # ---- failures and checkpoints (the rest in PackRecords) -------------------------------------
+    def _freeze_params(self, rows: list[int]) -> None:
         self.net.freeze(rows)
         if self.dnet is not None:
             self.dnet.freeze([a for a, i in enumerate(self.adv_rows) if i in rows])
 
-    # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
-    def _record(self, vals: dict[str, torch.Tensor], j: int) -> None:
-        V = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
-        for name, v in vals.items():
-            if name in ("self_play", "paired"):
-                V[:, _COL[name]] = v
-            else:  # ASP members only
-                V[self.adv_idx, _COL[name]] = v.double()
-        V.masked_fill_(~self.present, 0.0)  # a term the member does not have counts 0, as in the fused trainer
-        total = self.w64["self_play"] * V[:, 0] + self.w64["paired"] * V[:, 1]
-        if self.Ma:
-            total[self.adv_idx] += self.lam_now[j] * V[self.adv_idx, 2]
-        V[:, _COL["total"]] = total
-        if not bool(torch.isfinite(V).all()):
-            self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
-                         "non-finite loss")
-        if self.step >= self.window_start:
-            self.loss_sums += V[:, :len(LOSS_TERMS)]
-            self.loss_count += 1
-        if self.in_curve_window():
-            self.curve_sums += V
-            self.curve_count += 1
-
-    def _finish_curve_point(self) -> None:
-        if self.step % self.curve_every and self.step != self.train_steps:
-            return
-        n, sums = self.curve_count, self.curve_sums.tolist()
-        for i, m in enumerate(self.members):
-            if m.failed:
-                continue
-            point = {"step": float(self.step),
-                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
-            if n:
-                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][_COL[k]] / n for k in m.terms})
-            index = len(m.curve)
-            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
-                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
-            m.curve.append(point)
-        self.curve_sums.zero_()
-        self.curve_count = 0
-
-    def loss_columns(self, i: int) -> dict[str, float | None]:
-        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
-        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
-
-    # ---- checkpoints -------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """Everything to continue bit for bit: the draws of the current chunk are re-made from the
-        generators' states at its start."""
-        return {
-            "step": self.step, "net": self.net.state_dict(),
-            "dnet": self.dnet.state_dict() if self.dnet is not None else None,
-            "pos": self.pos.clone(), "chunk_start": self.chunk_start,
-            "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
-            else [m.gen.get_state() for m in self.members],
-            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
-            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
-            "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
-                        for m in self.members],
-        }
+        """Everything to continue bit for bit (PackRecords._state), with the rollout positions."""
+        return self._state(pos=self.pos.clone())
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.net.load_state_dict(state["net"])
-        if self.dnet is not None:
-            self.dnet.load_state_dict(state["dnet"])
         self.pos = state["pos"].clone()
-        self.loss_sums.copy_(state["loss_sums"])
-        self.curve_sums.copy_(state["curve_sums"])
-        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
-        for m, saved in zip(self.members, state["members"]):
-            m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
-        for m, g in zip(self.members, state["gens"]):
-            m.gen.set_state(g)
-        self.active = [not m.failed for m in self.members]
-        failed = [i for i, a in enumerate(self.active) if not a]
-        self.net.freeze(failed)
-        if self.dnet is not None:
-            self.dnet.freeze([a for a, i in enumerate(self.adv_rows) if i in failed])
-        self.step = self.chunk_start = self.chunk_end = state["chunk_start"]
-        if state["step"] > self.step:  # re-make the chunk's draws, continue inside it
-            self._draw_chunk()
-        self.step = state["step"]
+        self._load_state(state)
 
     # ---- helpers -------------------------------------------------------------------------------
     @staticmethod

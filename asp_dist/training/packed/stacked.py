@@ -1,9 +1,12 @@
-"""What the packed trainers share: stacked parameters with one batched Adam step, per-member
-columns of scalars, and the allocator setting that packed updates want.
+"""What the packed trainers share: stacked parameters with one batched Adam step, the members'
+records, per-member columns of scalars, and the allocator setting that packed updates want.
 
     StackedParams         the parameters of M modules of one architecture in one flat buffer
                           (member-stacked blocks), their gradient buffer and Adam moments, one
                           fused Adam step for all of them; freezing of diverged members
+    PackRecords           a packed trainer's base class: the update count, each member's loss sums
+                          and learning curve (as Trainer records them), failures, and the
+                          checkpoint of all that
     column                per-member Python scalars as a (M, 1[, 1]) tensor
     retain_freed_memory   glibc: keep freed memory in the heap instead of returning it at each free
 
@@ -14,11 +17,19 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 
+from asp_dist.training.methods import lambda_factor
+from asp_dist.training.row import LOSS_TERMS
+from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+
 BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's and FlatAdam's defaults
+# What each member records per update (the single-cell trainers' diagnostics), in column order.
+TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
+COL = {name: i for i, name in enumerate(TERMS)}
 
 
 def column(values: Sequence[float], *, dims: int = 2, dtype=torch.float32) -> torch.Tensor:
@@ -112,6 +123,137 @@ class StackedParams:
         for name in ("param", "exp_avg", "exp_avg_sq", "steps"):
             getattr(self, name).copy_(state[name])
         self.frozen = torch.zeros(0, dtype=torch.long)
+
+
+class PackRecords:
+    """What a packed trainer keeps besides its update, the same for every domain: the update count,
+    each member's loss sums over the last 10 % of training (its row's loss_* columns) and its
+    learning curve, as Trainer.record / finish_curve_point / loss_columns keep them; failures
+    (members frozen); and the checkpoint of all that with the stacked parameters.
+
+    A subclass sets, before calling _init_records(): M, members (each with spec, weights, gen,
+    terms, probe, curve, failed_step, error, failed), train_steps, net and dnet (StackedParams or
+    None), present ((M, len(TERMS)) bool: the terms a member has), w64 (float64 loss weights
+    "self_play" and "paired"), Ma, adv_idx and lam_now (the ASP members, λ1 per update of the
+    chunk). It implements _freeze_params(rows) (freeze the members' parameters and
+    discriminators) and _draw_chunk() (the random draws of updates [step, step + CHUNK))."""
+
+    def _init_records(self) -> None:
+        self.step = 0
+        self.window_start = int(0.9 * self.train_steps)
+        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
+        self.curve_window = max(1, self.curve_every // 10)
+        self.loss_sums = torch.zeros(self.M, len(LOSS_TERMS), dtype=torch.float64)
+        self.loss_count = 0
+        self.curve_sums = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        self.curve_count = 0
+        self.active = [True] * self.M
+        self.chunk_start = self.chunk_end = 0
+        self.chunk_gen_states: list[torch.Tensor] = []
+
+    def in_curve_window(self) -> bool:
+        return (-self.step - 1) % self.curve_every < self.curve_window
+
+    def recording(self) -> bool:
+        return self.step >= self.window_start or self.in_curve_window()
+
+    # ---- failures --------------------------------------------------------------------------------
+    def _freeze(self, rows: list[int], why: str) -> None:
+        """Mark members failed and freeze their parameters (and their discriminators) for good."""
+        for i in rows:
+            self.active[i] = False
+            self.members[i].failed_step = self.step
+            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}; member frozen"
+        self._freeze_params(rows)
+
+    def _freeze_params(self, rows: list[int]) -> None:
+        raise NotImplementedError
+
+    def _draw_chunk(self) -> None:
+        raise NotImplementedError
+
+    # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
+    def _record(self, vals: dict[str, torch.Tensor], j: int) -> None:
+        """One update's diagnostics (`vals`: per-member "self_play" and "paired", the ASP members'
+        others) for update j of the chunk; a member whose loss is not finite is frozen."""
+        V = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        for name, v in vals.items():
+            if name in ("self_play", "paired"):
+                V[:, COL[name]] = v
+            else:  # ASP members only
+                V[self.adv_idx, COL[name]] = v.double()
+        V.masked_fill_(~self.present, 0.0)  # a term the member does not have counts 0, as in Trainer
+        total = self.w64["self_play"] * V[:, 0] + self.w64["paired"] * V[:, 1]
+        if self.Ma:
+            total[self.adv_idx] += self.lam_now[j] * V[self.adv_idx, 2]
+        V[:, COL["total"]] = total
+        if not bool(torch.isfinite(V).all()):
+            self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
+                         "non-finite loss")
+        if self.step >= self.window_start:
+            self.loss_sums += V[:, :len(LOSS_TERMS)]
+            self.loss_count += 1
+        if self.in_curve_window():
+            self.curve_sums += V
+            self.curve_count += 1
+
+    def _finish_curve_point(self) -> None:
+        if self.step % self.curve_every and self.step != self.train_steps:
+            return
+        n, sums = self.curve_count, self.curve_sums.tolist()
+        for i, m in enumerate(self.members):
+            if m.failed:
+                continue
+            point = {"step": float(self.step),
+                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
+            if n:
+                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][COL[k]] / n for k in m.terms})
+            index = len(m.curve)
+            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
+                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
+            m.curve.append(point)
+        self.curve_sums.zero_()
+        self.curve_count = 0
+
+    def loss_columns(self, i: int) -> dict[str, float | None]:
+        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
+        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def _state(self, **own: Any) -> dict[str, Any]:
+        """The trainer's state with the subclass's `own` entries (its self-play state): everything to
+        continue bit for bit; the draws of the current chunk are re-made from the generators' states
+        at its start."""
+        return {
+            "step": self.step, "net": self.net.state_dict(),
+            "dnet": self.dnet.state_dict() if self.dnet is not None else None,
+            **own, "chunk_start": self.chunk_start,
+            "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
+            else [m.gen.get_state() for m in self.members],
+            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
+            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
+            "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
+                        for m in self.members],
+        }
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        """Load what _state saved (a subclass loads its own entries first)."""
+        self.net.load_state_dict(state["net"])
+        if self.dnet is not None:
+            self.dnet.load_state_dict(state["dnet"])
+        self.loss_sums.copy_(state["loss_sums"])
+        self.curve_sums.copy_(state["curve_sums"])
+        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
+        for m, saved in zip(self.members, state["members"]):
+            m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
+        for m, g in zip(self.members, state["gens"]):
+            m.gen.set_state(g)
+        self.active = [not m.failed for m in self.members]
+        self._freeze_params([i for i, a in enumerate(self.active) if not a])
+        self.step = self.chunk_start = self.chunk_end = state["chunk_start"]
+        if state["step"] > self.step:  # re-make the chunk's draws, continue inside it
+            self._draw_chunk()
+        self.step = state["step"]
 
 
 def retain_freed_memory() -> None:
