@@ -31,8 +31,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 def one(domain: str, k: int, retain: bool, updates: int) -> dict:
     import torch
 
-    import asp_dist.training.packed.stacked as stacked
     from asp_dist.domains import get_domain
+    from asp_dist.training.packed import stacked
 
     torch.set_num_threads(1)
     if domain == "particles":
@@ -59,8 +59,9 @@ def one(domain: str, k: int, retain: bool, updates: int) -> dict:
         pack.train_step()
     cpu, r1 = time.process_time() - c0, resource.getrusage(resource.RUSAGE_SELF)
     per = updates * k
-    return dict(domain=domain, k=k, retain=retain, cpu_ms=cpu / per * 1e3, sys_ms=(r1.ru_stime - r0.ru_stime) / per * 1e3,
-                faults=(r1.ru_minflt - r0.ru_minflt) / updates, rss_mib=r1.ru_maxrss / 1024, load=os.getloadavg()[0])
+    return {"domain": domain, "k": k, "retain": retain, "cpu_ms": cpu / per * 1e3,
+            "sys_ms": (r1.ru_stime - r0.ru_stime) / per * 1e3, "faults": (r1.ru_minflt - r0.ru_minflt) / updates,
+            "rss_mib": r1.ru_maxrss / 1024, "load": os.getloadavg()[0]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(args.rounds):
             for retain in ((False, True) if r % 2 == 0 else (True, False)):
                 proc = subprocess.run([sys.executable, __file__, "--one", args.domain, str(k), str(int(retain)),
-                                       "--updates", str(args.updates)], capture_output=True, text=True)
+                                       "--updates", str(args.updates)], capture_output=True, text=True, check=False)
                 if proc.returncode:
                     sys.stderr.write(proc.stderr)
                     return proc.returncode
