@@ -65,9 +65,9 @@ compute the union of the members' work (a PC member rides along in the self-play
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -77,9 +77,17 @@ from asp_dist.domains.contract import Tensors
 from asp_dist.domains.levers import AGENTS, CommNet, epsilon
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import LossWeights, method_weights
+from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import driver
-from asp_dist.training.packed.stacked import TERMS, PackRecords, StackedParams, column, retain_freed_memory
+from asp_dist.training.packed.stacked import (
+    TERMS,
+    PackMember,
+    PackRecords,
+    StackedParams,
+    column,
+    member_terms,
+    retain_freed_memory,
+)
 
 __all__ = ["PackedLeverTrainer", "pack_key", "run_pack", "supports", "SHARED", "TERMS"]
 
@@ -118,33 +126,12 @@ def pack_key(spec: CellSpec) -> tuple:
     return tuple(getattr(spec, name) for name in SHARED)
 
 
-@dataclass
-class Member:
-    """One cell of a pack: its spec and everything the pack keeps per member."""
+@dataclass(kw_only=True)
+class Member(PackMember):
+    """One cell of a pack, with its networks."""
 
-    spec: CellSpec
-    weights: LossWeights
-    agents: CommNet                        # parameters are views of the pack's buffer: always current
-    discs: tuple[torch.nn.Module, ...]     # (f1, f2) discriminators of an ASP member, likewise; else ()
-    gen: torch.Generator
-    n_paired: int
-    terms: tuple[str, ...]                 # the diagnostics this member records (as Trainer)
-    probe: Callable[[int], dict[str, float]] | None = None
-    curve: list[dict[str, float]] = field(default_factory=list)
-    failed_step: int | None = None
-    error: str | None = None
-
-    @property
-    def self_play(self) -> bool:
-        return self.weights.needs_self_play
-
-    @property
-    def adversary(self) -> bool:
-        return self.weights.needs_adversary
-
-    @property
-    def failed(self) -> bool:
-        return self.error is not None
+    agents: CommNet  # parameters are views of the pack's buffer: always current
+    discs: tuple[torch.nn.Module, ...]  # (f1, f2) discriminators of an ASP member, likewise; else ()
 
 
 class PackedLeverTrainer(PackRecords):
@@ -194,9 +181,8 @@ class PackedLeverTrainer(PackRecords):
                 pair = tuple(adv.discs[ch] for ch in CHANNELS)
                 discs.append(pair)
             n = len(p["ids"]) if weights.paired != 0.0 else 0
-            terms = (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n else ()) \
-                + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ())
-            self.members.append(Member(spec, weights, a, pair, gen, n, terms + ("total",)))
+            self.members.append(Member(spec=spec, weights=weights, agents=a, discs=pair, gen=gen, n_paired=n,
+                                       terms=member_terms(weights, n)))
         mem = self.members
         self.any_self_play = any(m.self_play for m in mem)
         self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]

@@ -49,9 +49,9 @@ buffer, speaker-only paired loss) are not packable: `supports`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -62,9 +62,16 @@ from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAge
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.fast.particles import FusedParticleTrainer
-from asp_dist.training.methods import LossWeights, method_weights
+from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import driver
-from asp_dist.training.packed.stacked import TERMS, PackRecords, StackedParams, column
+from asp_dist.training.packed.stacked import (
+    TERMS,
+    PackMember,
+    PackRecords,
+    StackedParams,
+    column,
+    member_terms,
+)
 
 _tanh_backward = torch.ops.aten.tanh_backward
 _threshold_backward = torch.ops.aten.threshold_backward
@@ -88,33 +95,12 @@ def pack_key(spec: CellSpec) -> tuple:
     return tuple(getattr(spec, name) for name in SHARED)
 
 
-@dataclass
-class Member:
-    """One cell of a pack: its spec and everything the pack keeps per member."""
+@dataclass(kw_only=True)
+class Member(PackMember):
+    """One cell of a pack, with its networks."""
 
-    spec: CellSpec
-    weights: LossWeights
-    agents: ParticleAgents           # parameters are views of the pack's buffer: always current
-    disc: torch.nn.Module | None     # likewise, for ASP members
-    gen: torch.Generator
-    n_paired: int
-    terms: tuple[str, ...]           # the diagnostics this member records (as the fused trainer)
-    probe: Callable[[int], dict[str, float]] | None = None
-    curve: list[dict[str, float]] = field(default_factory=list)
-    failed_step: int | None = None
-    error: str | None = None
-
-    @property
-    def self_play(self) -> bool:
-        return self.weights.needs_self_play
-
-    @property
-    def adversary(self) -> bool:
-        return self.weights.needs_adversary
-
-    @property
-    def failed(self) -> bool:
-        return self.error is not None
+    agents: ParticleAgents  # parameters are views of the pack's buffer: always current
+    disc: torch.nn.Module | None  # likewise, for ASP members
 
 
 class _Rollout(NamedTuple):
@@ -190,9 +176,8 @@ class PackedParticleTrainer(PackRecords):
                 discs.append(disc)
             states.append(domain.init_self_play(spec, a, gen) if weights.needs_self_play else {})
             n = len(p["state"]) if weights.paired != 0.0 else 0
-            terms = (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n else ()) \
-                + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ())
-            self.members.append(Member(spec, weights, a, disc, gen, n, terms + ("total",)))
+            self.members.append(Member(spec=spec, weights=weights, agents=a, disc=disc, gen=gen, n_paired=n,
+                                       terms=member_terms(weights, n)))
         mem = self.members
         self.any_self_play = any(m.self_play for m in mem)
         self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]

@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
-from asp_dist.training.methods import lambda_factor
+from asp_dist.spec import CellSpec
+from asp_dist.training.methods import LossWeights, lambda_factor
 from asp_dist.training.row import LOSS_TERMS
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
 
@@ -289,3 +291,38 @@ def retain_freed_memory() -> None:
 
 
 _MALLOC_DONE = False
+
+
+@dataclass(kw_only=True)
+class PackMember:
+    """One cell of a pack: its spec and what every packed trainer keeps per member (a domain's
+    trainer adds its networks)."""
+
+    spec: CellSpec
+    weights: LossWeights
+    gen: torch.Generator
+    n_paired: int
+    terms: tuple[str, ...]           # the diagnostics this member records (as its single-cell trainer)
+    probe: Callable[[int], dict[str, float]] | None = None
+    curve: list[dict[str, float]] = field(default_factory=list)
+    failed_step: int | None = None
+    error: str | None = None
+
+    @property
+    def self_play(self) -> bool:
+        return self.weights.needs_self_play
+
+    @property
+    def adversary(self) -> bool:
+        return self.weights.needs_adversary
+
+    @property
+    def failed(self) -> bool:
+        return self.error is not None
+
+
+def member_terms(weights: LossWeights, n_paired: int) -> tuple[str, ...]:
+    """The loss and discriminator columns a member records, in the single-cell trainers' order."""
+    return (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n_paired else ()) \
+        + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ()) \
+        + ("total",)
