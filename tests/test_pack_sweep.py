@@ -525,6 +525,12 @@ def test_a_killed_packed_sweep_resumes_each_pack_from_its_checkpoint_and_writes_
                 list(trial_dir.glob("checkpoint_000001")) and not store.is_done(
                 sweep_dir, "particles", second.specs[0].method, second.specs[0].cell_id)):
             time.sleep(0.05)
+        # Tune restores from its experiment state, which it snapshots every few seconds: kill only after a
+        # snapshot taken since that checkpoint appeared (under load the snapshot may lag the checkpoint).
+        seen = time.time()
+        while driver.poll() is None and time.monotonic() < deadline and not any(
+                f.stat().st_mtime > seen + 0.5 for f in (sweep_dir / "tune" / "run-1").glob("experiment_state*.json")):
+            time.sleep(0.05)
         assert driver.poll() is None, "the sweep ended before it could be interrupted: " + err_file.read_text()[-2000:]
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
