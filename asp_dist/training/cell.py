@@ -97,19 +97,9 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
         checkpoint({"version": CHECKPOINT_VERSION, "cell_id": spec.cell_id, "trainer": trainer.state_dict(),
                     "timings": dict(timer.seconds)})
 
-    report_every = max(1, spec.train_steps // 100)
-    last_save = time.monotonic()
     with timer.phase("train"):
-        while trainer.step < spec.train_steps:
-            trainer.train_step()
-            if progress is not None and (trainer.step % report_every == 0 or trainer.step == spec.train_steps):
-                progress("train", trainer.step, spec.train_steps, {})
-            if checkpoint is not None and trainer.step < spec.train_steps:
-                due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
-                    (time.monotonic() - last_save >= checkpoint_every_s)
-                if due:
-                    save_state()
-                    last_save = time.monotonic()
+        train_to_end(trainer, spec.train_steps, progress, save_state if checkpoint is not None else None,
+                     checkpoint_every_s, checkpoint_every_steps)
 
     with timer.phase("eval"):
         agents.eval()
@@ -135,3 +125,22 @@ def make_probe(spec: CellSpec, domain, base: BaseModel, agents: torch.nn.Module)
             return domain.evaluate(small, base.agents, agents, torch.Generator().manual_seed(spec.seed_for("eval") + step))
 
     return probe
+
+
+def train_to_end(trainer, steps: int, progress: ProgressFn | None, save_state: Callable[[], None] | None,
+                 checkpoint_every_s: float, checkpoint_every_steps: int | None) -> None:
+    """Run trainer.train_step() until `steps` updates: progress every 1 % of them, and save_state (when
+    given) every `checkpoint_every_steps` updates, or every `checkpoint_every_s` seconds without a
+    step interval -- never after the last update. One loop for a cell and for a pack."""
+    report_every = max(1, steps // 100)
+    last_save = time.monotonic()
+    while trainer.step < steps:
+        trainer.train_step()
+        if progress is not None and (trainer.step % report_every == 0 or trainer.step == steps):
+            progress("train", trainer.step, steps, {})
+        if save_state is not None and trainer.step < steps:
+            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
+                (time.monotonic() - last_save >= checkpoint_every_s)
+            if due:
+                save_state()
+                last_save = time.monotonic()

@@ -25,7 +25,7 @@ from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
-from asp_dist.training.cell import PhaseTimer, make_probe
+from asp_dist.training.cell import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
 from asp_dist.training.row import build_row
 
@@ -190,18 +190,8 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
         checkpoint({"version": PACK_CHECKPOINT_VERSION, "cell_ids": live_ids, "trainer": trainer.state_dict(),
                     "timings": timings})
 
-    report_every = max(1, trainer.train_steps // 100)
-    last_save = time.monotonic()
-    while trainer.step < trainer.train_steps:
-        trainer.train_step()
-        if progress is not None and (trainer.step % report_every == 0 or trainer.step == trainer.train_steps):
-            progress("train", trainer.step, trainer.train_steps, {})
-        if checkpoint is not None and trainer.step < trainer.train_steps:
-            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
-                (time.monotonic() - last_save >= checkpoint_every_s)
-            if due:
-                save_state()
-                last_save = time.monotonic()
+    train_to_end(trainer, trainer.train_steps, progress, save_state if checkpoint is not None else None,
+                 checkpoint_every_s, checkpoint_every_steps)
     share_wall = (time.perf_counter() - wall) / len(live)
     share_cpu = (time.process_time() - cpu) / len(live)
 
