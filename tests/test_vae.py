@@ -152,3 +152,38 @@ def test_vae_module_shapes():
         out = vae.decode(mu)
     assert mu.shape == logvar.shape == (5, 3)
     assert out.shape == (5, 784) and float(out.min()) >= 0 and float(out.max()) <= 1
+
+
+@pytest.mark.parametrize("changes", [
+    dict(method="osp"), dict(method="asp"),
+    dict(method="asp", vae_recon_loss="mse", vae_adversary_input="z", vae_paired_reduction="mean"),
+    dict(method="asp", adversary_loss="non_saturating", disc_steps=2),
+], ids=["osp", "asp", "asp-mse-z-mean", "asp-nonsat-2disc"])
+def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
+    """The fast trainer (self-play and paired rows in one batch per network) computes the
+    reference update: same losses, same gradients and weights up to float rounding, same draws."""
+    from asp_dist.training.fast import choose_trainer
+    from asp_dist.training.fast.vae import OnePassVAETrainer
+    from asp_dist.training.methods import method_weights
+    from asp_dist.training.trainer import Trainer
+
+    spec = tiny(paired=4, **changes).resolved()
+    gen = torch.Generator().manual_seed(0)
+    paired = domain.paired(spec, base.agents, spec.paired, gen)
+    unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, gen)
+    weights = method_weights(spec)
+    reference, fast = (cls(spec, domain, domain.new_agents(spec, 1), paired, unpaired, weights)
+                       for cls in (Trainer, OnePassVAETrainer))
+    assert isinstance(choose_trainer(spec, domain, domain.new_agents(spec, 1), paired, unpaired, weights),
+                      OnePassVAETrainer)
+    for step in range(3):
+        for trainer in (reference, fast):
+            trainer.train_step()
+            if step == 0:  # the first update's gradients, before Adam has amplified any rounding
+                trainer.first_grads = [p.grad.clone() for p in trainer.agents.parameters()]
+        for g_ref, g_fast in zip(reference.first_grads, fast.first_grads):
+            torch.testing.assert_close(g_fast, g_ref, rtol=1e-4, atol=1e-6)
+    for (name, p_ref), p_fast in zip(reference.agents.named_parameters(), fast.agents.parameters()):
+        torch.testing.assert_close(p_fast, p_ref, rtol=1e-4, atol=1e-6, msg=name)
+    assert torch.equal(reference.gen.get_state(), fast.gen.get_state()), "the draws differ"
+    assert reference.step == fast.step == 3

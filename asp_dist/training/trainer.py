@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import torch
 
-from asp_dist.domains.contract import Domain, Tensors
+from asp_dist.domains.contract import Domain, SelfPlayOut, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor
@@ -82,14 +82,9 @@ class Trainer:
         spec, w = self.spec, self.weights_now()
         record = self.recording()
         diagnostics: dict[str, float] | None = {} if record else None
-        sp_loss = paired_loss = unpaired_loss = None
-        sp_out = None
-        if w.needs_self_play:
-            sp_out = self.domain.self_play_step(spec, self.agents, self.sp_state, self.gen)
-            sp_loss = sp_out.loss
-        if w.paired != 0.0:
-            paired_loss = self.domain.paired_loss(spec, self.agents, self.paired)
-        disc_loss = None
+        sp_out, paired_loss = self.model_terms(w)
+        sp_loss = sp_out.loss if sp_out is not None else None
+        unpaired_loss = disc_loss = None
         if self.adversaries is not None:
             fake = sp_out.outputs if sp_out is not None and sp_out.outputs else \
                 self.domain.convention_outputs(spec, self.agents, spec.unpaired_batch, self.gen)
@@ -111,6 +106,13 @@ class Trainer:
             self.record(diagnostics)
         self.step += 1
         self.finish_curve_point()
+
+    def model_terms(self, w: LossWeights) -> tuple[SelfPlayOut | None, torch.Tensor | None]:
+        """This update's self-play step (None without self-play) and paired loss (None when λ0 = 0),
+        the self-play step first: it draws from the trainer's generator."""
+        sp_out = self.domain.self_play_step(self.spec, self.agents, self.sp_state, self.gen) if w.needs_self_play else None
+        paired_loss = self.domain.paired_loss(self.spec, self.agents, self.paired) if w.paired != 0.0 else None
+        return sp_out, paired_loss
 
     def record(self, values: dict[str, float]) -> None:
         """Add one recorded update's values to the final window and/or the open curve point."""

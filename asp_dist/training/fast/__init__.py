@@ -8,10 +8,11 @@ from __future__ import annotations
 from asp_dist.domains.contract import Domain, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.fast.particles import FusedParticleTrainer
+from asp_dist.training.fast.vae import OnePassVAETrainer
 from asp_dist.training.methods import LossWeights
 from asp_dist.training.trainer import Trainer
 
-FAST_TRAINERS: dict[str, type[Trainer]] = {"particles": FusedParticleTrainer}
+FAST_TRAINERS: dict[str, type[Trainer]] = {"particles": FusedParticleTrainer, "vae": OnePassVAETrainer}
 
 
 def choose_trainer(spec: CellSpec, domain: Domain, agents, paired: Tensors, unpaired: Tensors,
