@@ -3,8 +3,11 @@ sys.path as the script's own directory)."""
 
 from __future__ import annotations
 
+import os
+import platform
 import resource
-from typing import Any
+import time
+from typing import Any, Callable
 
 
 def peak_rss_mib() -> float:
@@ -17,3 +20,32 @@ def cell_timing(row: dict[str, Any]) -> str:
     return (f"train {row['time_train_wall_s']:.1f} s, eval {row['time_eval_wall_s']:.2f} s, "
             f"data {row['time_data_wall_s']:.2f} s, total {row['time_total_wall_s']:.1f} s wall / "
             f"{row['time_total_cpu_s']:.1f} s CPU")
+
+
+def timed(step: Callable[[], Any], updates: int) -> tuple[float, float]:
+    """(wall, CPU) seconds of `updates` calls of `step`."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(updates):
+        step()
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
+def machine_info() -> dict[str, Any]:
+    """What a benchmark figure was measured on: host, CPU model (/proc/cpuinfo), cores, memory,
+    torch version and the CPU capability its kernels were dispatched for."""
+    import torch
+
+    info: dict[str, Any] = {"host": platform.node(), "machine": platform.machine(), "cores": os.cpu_count(),
+                            "python": platform.python_version(), "torch": torch.__version__,
+                            "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+                            "torch_threads": torch.get_num_threads(),
+                            "omp_num_threads": os.environ.get("OMP_NUM_THREADS")}
+    for path, key, field in (("/proc/cpuinfo", "cpu_model", "model name"), ("/proc/meminfo", "memory", "MemTotal")):
+        try:
+            with open(path) as f:
+                info[key] = next((line.split(":", 1)[1].strip() for line in f if line.startswith(field)), None)
+        except OSError:
+            info[key] = None
+    if info["memory"] and info["memory"].endswith(" kB"):
+        info["memory"] = f"{int(info['memory'].split()[0]) / 2**20:.1f} GiB"
+    return info

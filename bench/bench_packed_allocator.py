@@ -5,8 +5,8 @@
 
 Each measurement is a fresh process (the setting is process-wide and glibc's thresholds adapt to
 what a process freed before, so only a new process starts from the defaults): it builds one pack
-of the first K cells of the paper grid at paper settings (bench_packed.py's and
-bench_packed_levers.py's cells and data), calls retain_freed_memory() or keeps glibc's defaults
+of the first K cells of the paper grid at paper settings (bench_packing.py's cells, data and pack;
+bench_packed.py's and bench_packed_levers.py's before), calls retain_freed_memory() or keeps glibc's defaults
 (a trainer's own call is then a no-op), runs 20 warm-up updates and times --updates updates.
 The two settings alternate, --rounds times per K, the first of each pair swapped every round, so
 that a load that changes during the run hits both. Reported per member-update: CPU time (the
@@ -30,28 +30,17 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 def one(domain: str, k: int, retain: bool, updates: int) -> dict:
     import torch
+    from bench_packing import build_pack, cell_data, grid_cells, packed_trainer
 
-    from asp_dist.domains import get_domain
     from asp_dist.training.packed import stacked
 
     torch.set_num_threads(1)
-    if domain == "particles":
-        from bench_packed import cell_data, grid_cells
-
-        from asp_dist.training.packed.particles import PackedParticleTrainer as Trainer
-    else:
-        from bench_packed_levers import cell_data, grid_cells
-
-        from asp_dist.training.packed.levers import PackedLeverTrainer as Trainer
     if retain:
         stacked.retain_freed_memory()
     else:
         stacked._MALLOC_DONE = True  # the trainer's own call (levers) is then a no-op: glibc's defaults
-    dom = get_domain(domain)
-    specs = grid_cells(k, None)
-    data = cell_data(specs)
-    pack = Trainer(specs, [d[0] for d in data], [d[1] for d in data],
-                   [dom.new_agents(s, s.seed_for("init")) for s in specs])
+    specs = grid_cells(domain, k)
+    pack = build_pack(packed_trainer(domain), specs, cell_data(specs))
     for _ in range(20):
         pack.train_step()
     r0, c0 = resource.getrusage(resource.RUSAGE_SELF), time.process_time()
@@ -66,7 +55,9 @@ def one(domain: str, k: int, retain: bool, updates: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--domain", choices=("particles", "levers"), default="particles")
+    from asp_dist.training.packed import PACKED
+
+    ap.add_argument("--domain", choices=list(PACKED), default="particles")
     ap.add_argument("--ks", default="21,64", help="pack sizes")
     ap.add_argument("--rounds", type=int, default=6, help="processes per setting and K")
     ap.add_argument("--updates", type=int, default=300, help="timed updates per process")

@@ -6,6 +6,7 @@ memory, and the floating-point work of an update against the machine's measured 
 --cells also runs one whole cell per method at the domain's defaults (train_steps updates plus
 evaluation on the 10k test images) on a base trained with --base-steps updates (the base's
 cost is reported separately: per update and extrapolated to the paper's 5,000).
+bench/bench_packing.py (issue 13's one run) imports its operation counts and timers.
 """
 
 from __future__ import annotations
@@ -29,19 +30,47 @@ from asp_dist.training.methods import method_weights  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
 
-def matmul_gflops(m: int = 128, k: int = 784, n: int = 512, reps: int = 300) -> float:
+def matmul_rate(m: int = 128, k: int = 784, n: int = 512, reps: int = 300) -> tuple[float, float]:
+    """GFLOP per wall second and per CPU second of an (m x k) @ (k x n) float32 matmul (default: the
+    shape of a base update's first layer), after 20 warm-up products."""
     a, b = torch.randn(m, k), torch.randn(k, n)
     for _ in range(20):
         a @ b
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     for _ in range(reps):
         a @ b
-    return 2 * m * k * n * reps / (time.perf_counter() - t) / 1e9
+    flop = 2 * m * k * n * reps
+    return flop / (time.perf_counter() - t) / 1e9, flop / max(time.process_time() - c, 1e-9) / 1e9
+
+
+def matmul_gflops(m: int = 128, k: int = 784, n: int = 512, reps: int = 300) -> float:
+    return matmul_rate(m, k, n, reps)[0]
 
 
 def vae_macs(d: int, hidden: int) -> int:
     """Multiply-accumulates of one image through encoder and decoder (forward)."""
     return PIXELS * hidden + hidden * 2 * d + d * hidden + hidden * PIXELS
+
+
+def base_update_flops(spec: CellSpec) -> float:
+    """Floating-point work of one base update (vae_base_batch images, forward + backward)."""
+    return spec.vae_base_batch * 2 * 3 * vae_macs(spec.vae_latent_dim, spec.vae_hidden)
+
+
+def base_update_time(spec: CellSpec, steps: int, seed: int = 0) -> tuple[float, float]:
+    """(wall, CPU) seconds per base update of the domain's own train_base, run for `steps` (>= 2)
+    updates and timed between its first and last progress report: without the set-up, the first
+    update(s) and the final evaluation on the test images."""
+    if steps < 2:
+        raise ValueError(f"base_update_time needs at least 2 steps, got {steps}")
+    marks: list[tuple[int, float, float]] = []
+
+    def progress(phase: str, done: int, total: int, info: dict) -> None:
+        marks.append((done, time.perf_counter(), time.process_time()))
+
+    get_domain("vae").train_base(spec.replace(base_train_steps=steps).resolved(), seed, progress)
+    (d0, w0, c0), (d1, w1, c1) = marks[0], marks[-1]
+    return (w1 - w0) / (d1 - d0), (c1 - c0) / (d1 - d0)
 
 
 def update_flops(spec: CellSpec) -> float:
@@ -85,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     per_base_update = (time.perf_counter() - t) / args.base_steps
     per_base_cpu = (time.process_time() - c) / args.base_steps
     base = BaseModel(agents=agents, key=spec0.base_key, score=score, attempts=1, seed=0)
-    base_flops = spec0.vae_base_batch * 2 * 3 * vae_macs(spec0.vae_latent_dim, spec0.vae_hidden)
+    base_flops = base_update_flops(spec0)
     # GFLOP/s are per CPU second: on a shared machine wall time measures the neighbours too.
     print(f"base update (batch {spec0.vae_base_batch}): {per_base_update * 1e3:.1f} ms wall, {per_base_cpu * 1e3:.1f} ms CPU "
           f"({base_flops / per_base_cpu / 1e9:.1f} GFLOP/s per CPU s, {base_flops / per_base_cpu / 1e9 / rate:.0%} of matmul) "

@@ -276,7 +276,8 @@ def retain_freed_memory() -> None:
     What it costs: memory the process frees stays mapped until it exits (peak RSS is unchanged;
     the RSS no longer shrinks after a peak), and the setting stays for the rest of the process, so
     a Ray worker that trained a lever pack keeps it for the cells it trains next
-    (bench/bench_packed_levers.py found the single-cell path's timings the same either way)."""
+    (bench/bench_packed_levers.py, since merged into bench/bench_packing.py, found the single-cell
+    path's timings the same either way)."""
     global _MALLOC_DONE
     if _MALLOC_DONE:
         return
