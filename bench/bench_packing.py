@@ -74,6 +74,7 @@ from asp_dist.training import cell  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
 from asp_dist.training.packed import PACKED, packed_module  # noqa: E402
 from asp_dist.training.packed import supports as packable  # noqa: E402
+from asp_dist.training.trainer import Trainer  # noqa: E402
 
 METHODS = ("pc", "osp", "asp")
 # Per-domain table: the grid whose cells are packed (default "paper-<domain>") and the updates per
@@ -231,10 +232,14 @@ def one_vae(updates: int, blocks: int) -> dict:
         if method == "asp":
             out["rss_asp_cell_mib"] = peak_rss_mib()
         trainers[method] = (spec, trainer)
+        if type(trainer) is not Trainer:  # the reference update beside the fast one: what the fast path gains
+            trainers[f"{method} (reference)"] = (spec, Trainer(spec, domain, fresh_agents(spec), paired, unpaired, weights))
+            timed(trainers[f"{method} (reference)"][1].train_step, 10)
     out["trainer"] = sorted({type(t).__name__ for _, t in trainers.values()})
-    times: dict[str, list[tuple[float, float]]] = {m: [] for m in METHODS}
+    names = list(trainers)
+    times: dict[str, list[tuple[float, float]]] = {m: [] for m in names}
     for b in range(blocks):
-        for m in METHODS if b % 2 == 0 else METHODS[::-1]:
+        for m in names if b % 2 == 0 else names[::-1]:
             wall, cpu = timed(trainers[m][1].train_step, updates)
             times[m].append((wall / updates, cpu / updates))
     rates.append(matmul_rate())
@@ -244,7 +249,7 @@ def one_vae(updates: int, blocks: int) -> dict:
     out.update(matmul_gflops_cpu=[r[1] for r in rates], matmul_gflops_wall=[r[0] for r in rates],
                matmul_gflops=rate, matmul_64_gflops=matmul_rate(64)[1], matmul_32_gflops=matmul_rate(32)[1])
     rows = {}
-    for m in METHODS:
+    for m in names:
         spec = trainers[m][0]
         wall, cpu = statistics.median(t[0] for t in times[m]), statistics.median(t[1] for t in times[m])
         rows[m] = {"gflop": update_flops(spec) / 1e9, "ms": wall * 1e3, "cpu_ms": cpu * 1e3, "blocks": times[m]}
