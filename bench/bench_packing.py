@@ -42,7 +42,10 @@ alternating per block, and the base update (batch 128, the domain's own train_ba
 first and last progress report). Each as GFLOP per CPU second (bench/bench_vae.py's operation
 counts) against the machine's matmul rate on one thread (128x784 @ 784x512 per CPU second,
 median of three measurements: before and after the cells' updates, after the base's). Peak RSS after an ASP
-cell's trainer has run (MNIST loaded, before the other trainers and the base exist).
+cell's trainer has run (MNIST loaded, before the other trainers and the base exist). Where run_cell's
+trainer is a fast one, the reference update (training.trainer.Trainer) is timed beside it. Stacked
+VAEs: the self-play update of K = 1, 4, 8, 21 VAEs through batched matmuls (stacked_vae_cpu_ms),
+the measurement behind the VAE having no packed trainer (docs/decisions.md).
 
 Load on a shared machine inflates every figure: the load averages are printed and stored.
 bench/bench_vae.py (whole VAE cells, other latent sizes) and bench/bench_packed_allocator.py stay
@@ -207,6 +210,36 @@ def one_packed(domain: str, k: int, method: str | None, updates: int, blocks: in
     return out
 
 
+STACKED_VAE_K = (1, 4, 8, 21)
+
+
+def stacked_vae_cpu_ms(k: int, updates: int, blocks: int, d: int = 32, hidden: int = 512, batch: int = 64) -> float:
+    """CPU ms per member-update of K VAEs stacked on a leading dimension: the self-play update
+    (BCE + KL of a batch of 64) through batched matmuls (baddbmm), autograd, one fused Adam step
+    for all. The prototype of a packed VAE trainer: what batching the VAE's matmuls would gain."""
+    from asp_dist.data.mnist import PIXELS
+
+    gen = torch.Generator().manual_seed(0)
+    shapes = [(PIXELS, hidden), (1, hidden), (hidden, 2 * d), (1, 2 * d), (d, hidden), (1, hidden), (hidden, PIXELS), (1, PIXELS)]
+    params = [(torch.randn((k, *s), generator=gen) * 0.03).requires_grad_() for s in shapes]
+    opt = torch.optim.Adam(params, lr=1e-3, fused=True)
+    x, eps = torch.rand(k, batch, PIXELS, generator=gen), torch.randn(k, batch, d, generator=gen)
+
+    def update() -> None:
+        w1, b1, w2, b2, w3, b3, w4, b4 = params
+        mu, logvar = torch.baddbmm(b2, torch.relu(torch.baddbmm(b1, x, w1)), w2).chunk(2, -1)
+        z = mu + torch.exp(0.5 * logvar) * eps
+        logits = torch.baddbmm(b4, torch.relu(torch.baddbmm(b3, z, w3)), w4)
+        recon = torch.nn.functional.binary_cross_entropy_with_logits(logits, x, reduction="sum") / batch
+        kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).sum() / batch
+        opt.zero_grad(set_to_none=True)
+        (recon + kl).backward()
+        opt.step()
+
+    timed(update, 5)
+    return statistics.median(timed(update, updates)[1] for _ in range(blocks)) / (updates * k) * 1e3
+
+
 def one_vae(updates: int, blocks: int) -> dict:
     from bench_vae import base_update_flops, base_update_time, matmul_rate, update_flops
 
@@ -242,6 +275,7 @@ def one_vae(updates: int, blocks: int) -> dict:
         for m in names if b % 2 == 0 else names[::-1]:
             wall, cpu = timed(trainers[m][1].train_step, updates)
             times[m].append((wall / updates, cpu / updates))
+    out["stacked_cpu_ms"] = {k: stacked_vae_cpu_ms(k, max(2, updates // 4), blocks) for k in STACKED_VAE_K}
     rates.append(matmul_rate())
     base_wall, base_cpu = base_update_time(spec0, max(updates, 2))
     rates.append(matmul_rate())
@@ -330,7 +364,10 @@ def markdown(report: dict) -> str:
         for name, r in v["rows"].items():
             lines.append(f"| {name} | {r['gflop']:.3f} | {r['cpu_ms']:.2f} ({r['ms']:.2f}) | {r['gflops_cpu']:.1f} "
                          f"| {r['of_matmul']:.0%} |")
-        lines.append("")
+        stacked = v["stacked_cpu_ms"]
+        lines += ["", "Stacked VAEs (the self-play update of K VAEs through batched matmuls, one fused Adam; "
+                  "what a packed VAE trainer would gain), CPU ms per member-update: "
+                  + ", ".join(f"K = {k}: {ms:.2f}" for k, ms in stacked.items()), ""]
     lines += ["Issue 13's targets and worker memory:", ""] + [f"- {t}" for t in report["summary"]]
     return "\n".join(lines)
 
@@ -439,6 +476,8 @@ def main(argv: list[str] | None = None) -> int:
             for name, r in v["rows"].items():
                 print(f"| {name} | {r['gflop']:.3f} | {r['ms']:.2f} / {r['cpu_ms']:.2f} | {r['gflops_cpu']:.1f} "
                       f"| {r['of_matmul']:.0%} |")
+            print("stacked VAEs, CPU ms per member-update: "
+                  + ", ".join(f"K = {k}: {ms:.2f}" for k, ms in v["stacked_cpu_ms"].items()))
             print(f"peak RSS: {v['rss_asp_cell_mib']:.0f} MiB after an ASP cell's updates, {v['rss_end_mib']:.0f} MiB "
                   f"at the end (3 cells' trainers, a base, its test-set evaluation); load "
                   f"{v['load_start'][0]:.1f}-{v['load_end'][0]:.1f}; {v['process_s']:.0f} s")
