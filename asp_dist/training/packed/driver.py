@@ -137,6 +137,13 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
     if not live:
         return results
 
+    # A checkpoint names its pack by the live members' cell ids in the order of `specs` (the sweep
+    # compares them with its own); the trainer's state is in the trainer's order, which follows.
+    # Refused before any data is sampled.
+    live_ids = [specs[i].cell_id for i in live]
+    if restore is not None and restore.get("cell_ids") != live_ids:
+        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
+
     # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
     paired, unpaired, agents, data_cache = {}, {}, {}, {}
     for i in live:
@@ -157,11 +164,6 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
                 unpaired[i] = u_cache[spec.unpaired_size]
             agents[i] = domain.new_agents(spec, spec.seed_for("init"))
 
-    # A checkpoint names its pack by the live members' cell ids in the order of `specs` (the sweep
-    # compares them with its own); the trainer's state is in the trainer's order, which follows.
-    live_ids = [specs[i].cell_id for i in live]
-    if restore is not None and restore.get("cell_ids") != live_ids:
-        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
     order = [live[k] for k in trainer_class.member_order([specs[i] for i in live])]
     wall, cpu = time.perf_counter(), time.process_time()
     trainer = trainer_class([specs[i] for i in order], [paired[i] for i in order], [unpaired[i] for i in order],
