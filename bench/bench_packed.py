@@ -9,9 +9,10 @@ and every K has the grid's mix of methods. For each K, in a fresh process (its p
 own, ru_maxrss):
 
 - packed: one PackedParticleTrainer of the K cells (asp_dist/training/packed/particles.py);
-- single: the same K cells one at a time on the trainer run_cell picks (the fused one), i.e.
-  today's sweep path. K = 1 is one trial's 21 cells, each alone: on the single path and as
-  1-member packs (the packed trainer's own overhead).
+- single: the same K cells one at a time on the trainer run_cell picks, i.e. today's unpacked
+  sweep path: a one-member pack of the same trainer since the fused single-cell kernel was
+  retired (docs/decisions.md). K = 1 is one trial's 21 cells, each alone: on the single path and
+  as 1-member packs, which are now the same trainer (K = 1's ratio is 1 up to noise).
 
 Time per member-update = wall (and CPU) time of --updates updates / (updates x K), median over
 --blocks blocks; packed and single blocks alternate, so a load that changes during the run hits
@@ -42,7 +43,7 @@ from _common import peak_rss_mib  # noqa: E402
 
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
-from asp_dist.training.fast import choose_trainer  # noqa: E402
+from asp_dist.training.cell import choose_trainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
 from asp_dist.training.packed.particles import PackedParticleTrainer  # noqa: E402
 

@@ -45,7 +45,7 @@ from _common import peak_rss_mib  # noqa: E402
 
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
-from asp_dist.training.fast import choose_trainer  # noqa: E402
+from asp_dist.training.cell import choose_trainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
 from asp_dist.training.packed.levers import PackedLeverTrainer  # noqa: E402
 

@@ -25,7 +25,7 @@ from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
-from asp_dist.training.cell import PhaseTimer, make_probe, train_to_end
+from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
 from asp_dist.training.row import build_row
 
