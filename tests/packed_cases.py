@@ -71,6 +71,9 @@ def trainer_class(domain: str) -> type:
     return run_pack.args[0]
 
 
+_DATA: dict[tuple, tuple[dict, dict]] = {}  # PackCase.member_data's draws
+
+
 def _no_state(*_) -> list[torch.Tensor]:
     return []
 
@@ -89,13 +92,19 @@ class PackCase:
         return CellSpec(**{"domain": self.domain, **self.small, **changes}).resolved()
 
     def member_data(self, s: CellSpec) -> tuple[dict, dict]:
-        """P and U of a member from a fixed (untrained) base."""
-        domain = get_domain(self.domain)
-        base = domain.new_agents(s, 99)
-        gen = torch.Generator().manual_seed(s.paired * 7919 + s.trial)
-        paired = domain.paired(s, base, s.paired, gen) if s.paired else {}
-        unpaired = domain.unpaired(s, base, s.unpaired_size, gen) if method_weights(s).needs_adversary else {}
-        return paired, unpaired
+        """P and U of a member from a fixed (untrained) base; copies of one draw per (base fields,
+        paired count, U's size) -- what they depend on, as run_pack's data cache has it (sampling a
+        particle P rolls out 4,096 episodes: the tests' costliest setup)."""
+        adversary = method_weights(s).needs_adversary
+        key = (s.base_key, s.paired, s.unpaired_size if adversary else None)
+        if key not in _DATA:
+            domain = get_domain(self.domain)
+            base = domain.new_agents(s, 99)
+            gen = torch.Generator().manual_seed(s.paired * 7919 + s.trial)
+            paired = domain.paired(s, base, s.paired, gen) if s.paired else {}
+            unpaired = domain.unpaired(s, base, s.unpaired_size, gen) if adversary else {}
+            _DATA[key] = paired, unpaired
+        return tuple({k: v.clone() for k, v in d.items()} for d in _DATA[key])
 
     def make_pack(self, specs: list[CellSpec], data: list[tuple[dict, dict]] | None = None):
         data = data or [self.member_data(s) for s in specs]
