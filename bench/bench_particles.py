@@ -4,8 +4,8 @@ and (optionally) whole cells at paper settings.
     python bench/bench_particles.py                      # base + per-update times (about a minute)
     python bench/bench_particles.py --cells pc,osp,asp   # also one full cell per method (minutes)
 
-Per-update time is given for the fused trainer that cells run (asp_dist/training/fast/particles.py) and for the
-autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
+Per-update time is given for the trainer that cells run (a one-member pack of asp_dist/training/packed/particles.py,
+run_cell's choose_trainer) and for the autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
 paper's batch (8 envs), the full paired set (6) and the ASP discriminator where it applies.
 Peak memory is the process's maximum resident set size (ru_maxrss) after each phase.
 Load on a shared machine inflates every figure: the load average is printed with them.
@@ -28,24 +28,23 @@ from _common import cell_timing, peak_rss_mib  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402
-from asp_dist.training.cell import run_cell  # noqa: E402
-from asp_dist.training.fast import choose_trainer  # noqa: E402
-from asp_dist.training.fast.particles import FusedParticleTrainer  # noqa: E402
+from asp_dist.training.cell import choose_trainer, run_cell  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
+from asp_dist.training.packed import PackOfOne  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
 
 def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) -> list[float]:
-    """engine: 'fused' (the hand-derived trainer choose_trainer picks: what cells run) or 'autograd' (the reference)."""
+    """engine: 'pack' (the one-member pack choose_trainer picks: what cells run) or 'autograd' (the reference)."""
     domain = get_domain(spec.domain)
     data_gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, data_gen)
     weights = method_weights(spec)
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
     agents = domain.new_agents(spec, 1)
-    if engine == "fused":  # what run_cell runs: the fused trainer wherever it implements the spec's knobs
+    if engine == "pack":  # what run_cell runs: a pack of one wherever the packed trainer implements the knobs
         trainer = choose_trainer(spec, domain, agents, paired, unpaired, weights)
-        assert isinstance(trainer, FusedParticleTrainer), f"{spec.cell_id}: no fused trainer for these knobs"
+        assert isinstance(trainer, PackOfOne), f"{spec.cell_id}: the packed trainer does not implement these knobs"
     else:
         trainer = Trainer(spec, domain, agents, paired, unpaired, weights)
     for _ in range(100):  # warm-up
@@ -78,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s CPU; "
           f"peak RSS {peak_rss_mib():.0f} MiB")
 
-    for method, engine in [(m, e) for m in ("pc", "osp", "asp") for e in ("fused", "autograd")]:
+    for method, engine in [(m, e) for m in ("pc", "osp", "asp") for e in ("pack", "autograd")]:
         spec = spec0.replace(method=method).resolved()
         ms = per_update_ms(spec, base, args.updates, args.blocks, engine)
         print(f"per-update {method} ({engine}): median {statistics.median(ms):.3f} ms (blocks {', '.join(f'{m:.3f}' for m in ms)}); "

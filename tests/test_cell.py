@@ -62,6 +62,23 @@ def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
         assert comparable(resumed) == comparable(uninterrupted)
 
 
+def test_a_checkpoint_from_before_engines_were_named_still_restores(tiny_signaling):
+    """Version 1 checkpoints did not name their engine; the reference Trainer's still load."""
+    saved = []
+
+    def keep(state):  # through bytes, as a checkpoint on disk would be
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        saved.append(buf.getvalue())
+
+    uninterrupted = run_cell(tiny_signaling, checkpoint=keep, checkpoint_every_steps=30)
+    state = torch.load(io.BytesIO(saved[0]), weights_only=False)
+    assert state["engine"] == "autograd"
+    old = {k: v for k, v in state.items() if k != "engine"} | {"version": 1}
+    resumed = run_cell(tiny_signaling, restore=old)
+    assert resumed["resumed_from_step"] == 30 and comparable(resumed) == comparable(uninterrupted)
+
+
 def test_checkpoint_of_another_cell_is_refused(tiny_signaling):
     states = []
     run_cell(tiny_signaling, checkpoint=states.append, checkpoint_every_steps=30)

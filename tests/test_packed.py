@@ -1,126 +1,82 @@
-"""Packed particle training (asp_dist/training/packed/particles.py) against the single-cell path
-the sweep runs for these specs (the fused trainer, itself tested against autograd in
-test_particles_fused.py): member by member, update by update, whole cells, and pack-mates."""
+"""Packed training (asp_dist/training/packed/), every check for every domain registered in PACKED:
+each pack member against the reference Trainer (autograd), update by update; whole tiny cells
+against run_cell (whatever trains a single cell of the domain); pack-mates; a diverging member;
+checkpoints of the trainer and of a whole pack. A newly registered domain is tested here without
+a new line (tests/packed_cases.py: its case, or the generic one); domain-specific checks are in
+tests/test_packed_<domain>.py."""
 
 from __future__ import annotations
 
 import io
+import json
 
 import pytest
 import torch
-from budgets import tiny_spec
+from budgets import TINY, tiny_spec
+from packed_cases import DOMAINS, case_for, disc_params, flat_grads, flat_params
 
-import asp_dist.training.packed.particles as packed_mod
 from asp_dist.domains import get_domain
-from asp_dist.spec import CellSpec
 from asp_dist.training.bases import train_accepted_base
-from asp_dist.training.cell import run_cell
-from asp_dist.training.fast import choose_trainer
-from asp_dist.training.fast.particles import FusedParticleTrainer
+from asp_dist.training.cell import choose_trainer, run_cell
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import pack_key, run_pack, supports
-from asp_dist.training.packed.particles import PackedParticleTrainer
+from asp_dist.training.packed import PackOfOne, pack_key, packed_module, run_pack, supports
+from asp_dist.training.packed.stacked import StackedParams
 from asp_dist.training.row import comparable
-
-SMALL = dict(domain="particles", particles_hidden=16, particles_message_dim=12, unpaired_size=64, train_steps=8)
-DOMAIN = get_domain("particles")
+from asp_dist.training.trainer import Trainer
 
 
-def spec(**changes) -> CellSpec:
-    return CellSpec(**{**SMALL, **changes}).resolved()
+def assert_states_equal(got: list[torch.Tensor], expected: list[torch.Tensor], what: str) -> None:
+    assert len(got) == len(expected), what
+    for a, b in zip(got, expected):
+        assert torch.equal(a, b), what
 
 
-def member_data(s: CellSpec) -> tuple[dict, dict]:
-    """P and U of a member from a fixed (untrained) base, as test_particles_fused draws them."""
-    base = DOMAIN.new_agents(s, 99)
-    gen = torch.Generator().manual_seed(s.paired * 7919 + s.trial)
-    paired = DOMAIN.paired(s, base, s.paired, gen) if s.paired else {}
-    unpaired = DOMAIN.unpaired(s, base, s.unpaired_size, gen) if method_weights(s).needs_adversary else {}
-    return paired, unpaired
-
-
-def make_pack(specs: list[CellSpec], data: list[tuple[dict, dict]] | None = None) -> PackedParticleTrainer:
-    data = data or [member_data(s) for s in specs]
-    return PackedParticleTrainer(specs, [d[0] for d in data], [d[1] for d in data],
-                                 [DOMAIN.new_agents(s, s.seed_for("init")) for s in specs])
-
-
-def make_single(s: CellSpec, data: tuple[dict, dict]):
-    """The trainer run_cell uses for `s` (the fused one, for every spec a pack accepts)."""
-    trainer = choose_trainer(s, DOMAIN, DOMAIN.new_agents(s, s.seed_for("init")), data[0], data[1], method_weights(s))
-    assert isinstance(trainer, FusedParticleTrainer)
-    return trainer
-
-
-def flat_params(module: torch.nn.Module) -> torch.Tensor:
-    return torch.cat([p.detach().reshape(-1) for p in module.parameters()])
-
-
-# Each pack holds members that differ in everything a member may differ in; members of one pack
-# share the fields in packed.SHARED (so the rollout length, discriminator shape and disc_steps
-# get packs of their own).
-PACKS = {
-    "mixed": [
-        dict(method="asp", paired=4, trial=0),
-        dict(method="pc", paired=4, trial=0),
-        dict(method="osp", paired=0, trial=1),
-        dict(method="osp", paired=5, trial=2, particles_gamma=0.9, particles_entropy=0.05, lr=2e-3),
-        dict(method="asp", paired=0, trial=1, unpaired_size=40, disc_lr=3e-3),
-        dict(method="asp", paired=3, trial=2, adversary_loss="non_saturating", lambda_unpaired=0.3),
-        dict(method="asp", paired=3, trial=0, lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5),
-        dict(method="asp", paired=2, trial=3, lambda_unpaired_schedule="anneal", lambda_schedule_frac=0.5,
-             particles_value_coef=0.3),
-        dict(method="pc", paired=0, trial=1),  # nothing to learn: no optimiser step, as the fused trainer
-    ],
-    "pc-only": [dict(method="pc", paired=4), dict(method="pc", paired=2, trial=1, lambda_paired=0.5),
-                dict(method="pc", paired=0)],
-    "rollout-3": [dict(method="asp", paired=2, particles_rollout_len=3),
-                  dict(method="osp", paired=1, trial=1, particles_rollout_len=3),
-                  dict(method="pc", paired=3, particles_rollout_len=3)],
-    "disc-2-layers": [dict(method="asp", paired=2, disc_layers=2, unpaired_batch=5),
-                      dict(method="asp", paired=0, trial=1, disc_layers=2, unpaired_batch=5)],
-    "disc-steps-3": [dict(method="asp", paired=2, disc_steps=3, unpaired_batch=6),
-                     dict(method="osp", paired=2, trial=1, disc_steps=3, unpaired_batch=6)],
-}
-
-
-@pytest.mark.parametrize("name", PACKS)
-def test_packed_update_equals_single_cell_member_by_member(name):
-    specs = [spec(**c) for c in PACKS[name]]
-    data = [member_data(s) for s in specs]
-    pack, singles = make_pack(specs, data), [make_single(s, d) for s, d in zip(specs, data)]
-    for step in range(SMALL["train_steps"]):
+# ---- a pack's update against the reference, member by member ----------------------------------------
+@pytest.mark.parametrize("domain,name", [(d, n) for d in DOMAINS for n in case_for(d).packs])
+def test_packed_update_equals_the_reference_member_by_member(domain, name):
+    case = case_for(domain)
+    specs = [case.spec(**c) for c in case.packs[name]]
+    data = [case.member_data(s) for s in specs]
+    pack, singles = case.make_pack(specs, data), [case.make_reference(s, d) for s, d in zip(specs, data)]
+    for step in range(case.small["train_steps"]):
         pack.train_step()
         for i, single in enumerate(singles):
             single.train_step()
-            # Same gradient (the fused trainer keeps it in its flat buffer) ...
-            expected, got = single.opt.grad, pack.net.member_flat(i, pack.net.grad)
-            assert torch.allclose(got, expected, rtol=1e-4, atol=1e-6 * max(expected.abs().max(), 1e-3)), \
+            # Same gradient ...
+            expected, got = flat_grads(single.agents), pack.net.member_flat(i, pack.net.grad)
+            assert torch.allclose(got, expected, rtol=1e-4, atol=1e-6 * max(float(expected.abs().max()), 1e-3)), \
                 f"member {i} ({specs[i].cell_id}), update {step}: gradient"
-            # ... so the same parameters after each Adam step, for the agents and the discriminator.
+            # ... so the same parameters after each Adam step, for the agents and the discriminators.
             assert torch.allclose(flat_params(pack.members[i].agents), flat_params(single.agents), atol=1e-5), \
                 f"member {i}, update {step}: parameters"
             if single.adversaries is not None:
-                assert torch.allclose(flat_params(pack.members[i].disc), flat_params(single.adversaries), atol=1e-5)
+                assert torch.allclose(disc_params(pack.members[i]), flat_params(single.adversaries), atol=1e-5), \
+                    f"member {i}, update {step}: discriminators"
     for i, single in enumerate(singles):
         # The same random draws in the same order (the generator ends where the single cell's does) ...
         assert torch.equal(pack.members[i].gen.get_state(), single.gen.get_state()), f"member {i}: generator"
-        # ... and so the same actions: the same positions, exactly.
-        if "pos" in single.sp_state:
-            assert torch.equal(pack.pos[i], single.sp_state["pos"]), f"member {i}: rollout state"
+        # ... so the same self-play: the same actions, positions, games, exactly.
+        if single.sp_state:
+            assert_states_equal(case.pack_state(pack, i), case.trainer_state(single), f"member {i}: self-play state")
         expected, got = single.loss_columns(), pack.loss_columns(i)
         assert expected.keys() == got.keys()
         for key in expected:
-            assert (got[key] is None) == (expected[key] is None), key
+            assert (got[key] is None) == (expected[key] is None), (i, key)
             if expected[key] is not None:
                 assert got[key] == pytest.approx(expected[key], rel=1e-4, abs=1e-6), (i, key)
 
 
-def test_curve_points_equal_single_cell():
-    """60 updates: a curve point after every update, the final window over the last 6."""
-    specs = [spec(**c, train_steps=60) for c in PACKS["mixed"][:6]]
-    data = [member_data(s) for s in specs]
-    pack, singles = make_pack(specs, data), [make_single(s, d) for s, d in zip(specs, data)]
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_curve_points_equal_the_single_cell_paths(domain):
+    """60 updates: a curve point after every update (every diagnostic), the final window over the last
+    6; against the trainer run_cell picks (the reference, or a pack of one: tests/test_packed_<domain>.py)."""
+    case = case_for(domain)
+    specs = [case.spec(**c, train_steps=60) for c in case.packs["mixed"][:6]]
+    data = [case.member_data(s) for s in specs]
+    d = get_domain(domain)
+    pack = case.make_pack(specs, data)
+    singles = [choose_trainer(s, d, d.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
+               for s, (p, u) in zip(specs, data)]
     for _ in range(60):
         pack.train_step()
         for single in singles:
@@ -132,38 +88,73 @@ def test_curve_points_equal_single_cell():
             assert p == pytest.approx(q, rel=1e-4, abs=1e-6)
 
 
-@pytest.fixture(scope="module")
-def tiny_bases():
-    """Bases of the tiny particle cells of trials 0 and 1, trained once."""
+# ---- whole tiny cells: run_pack against run_cell, and run_pack's checkpoints -------------------------
+TINY_CHUNK = 4  # draws made ahead in chunks of 4 updates: the checkpoint after update 9 is inside one
+EVERY = 3  # checkpoint_every_steps
+
+
+@pytest.fixture(scope="module", params=DOMAINS)
+def tiny_run(request):
+    """One domain's tiny cells (its case's tiny_cells): their bases (trials 0 and 1, trained once), and
+    one run_pack of them with curves and a checkpoint every EVERY updates (kept through torch.save)."""
+    domain = request.param
+    specs = [tiny_spec(domain, **c) for c in case_for(domain).tiny_cells]
     bases = {}
     for trial in (0, 1):
-        s = tiny_spec("particles", trial=trial).resolved()
+        s = tiny_spec(domain, trial=trial).resolved()
         bases[s.base_key] = train_accepted_base(s)
-    return bases
+    states: list[bytes] = []
+
+    def keep(state):
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        states.append(buf.getvalue())
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(packed_module(domain), "CHUNK", TINY_CHUNK)
+        results = packed_module(domain).run_pack(specs, bases=bases, curves=True, checkpoint=keep,
+                                                 checkpoint_every_steps=EVERY)
+    return dict(domain=domain, specs=specs, bases=bases, results=results, states=states)
 
 
-TINY_CELLS = [dict(method="asp", paired=3, trial=0), dict(method="pc", paired=2, trial=0),
-              dict(method="osp", paired=0, trial=1), dict(method="asp", paired=0, trial=1),
-              dict(method="osp", paired=4, trial=1), dict(method="pc", paired=0, trial=0)]
+def assert_figures_match(got: str, expected: str) -> None:
+    """Figure data as JSON: the same structure; numbers (vectors rounded to 4 decimals) a rounding step apart at most."""
+    def walk(a, b, where):
+        if isinstance(b, dict):
+            assert isinstance(a, dict) and a.keys() == b.keys(), where
+            for k in b:
+                walk(a[k], b[k], f"{where}.{k}")
+        elif isinstance(b, list):
+            assert isinstance(a, list) and len(a) == len(b), where
+            for k, (x, y) in enumerate(zip(a, b)):
+                walk(x, y, f"{where}[{k}]")
+        elif isinstance(b, float):
+            assert a == pytest.approx(b, rel=0, abs=1.01e-4), where
+        else:
+            assert a == b, where
+
+    walk(json.loads(got), json.loads(expected), "figure_data")
 
 
 def assert_rows_match(got: dict, expected: dict) -> None:
     got, expected = comparable(got), comparable(expected)
     assert got.keys() == expected.keys()
     for key, value in expected.items():
-        if isinstance(value, float) and not isinstance(value, bool):
+        if key == "figure_data" and value is not None:
+            assert_figures_match(got[key], value)
+        elif isinstance(value, float) and not isinstance(value, bool):
             assert got[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
         else:
             assert got[key] == value, key
 
 
-def test_whole_tiny_cells_give_run_cells_rows_and_curves(tiny_bases):
-    specs = [tiny_spec("particles", **c) for c in TINY_CELLS]
-    results = run_pack(specs, bases=tiny_bases, curves=True)
+def test_whole_tiny_cells_give_run_cells_rows_and_curves(tiny_run):
+    specs, bases, results = tiny_run["specs"], tiny_run["bases"], tiny_run["results"]
+    assert [r.spec.cell_id for r in results] == [s.resolved().cell_id for s in specs]  # in the specs' order
     for s, result in zip(specs, results):
         assert result.error is None
         curve: list = []
-        row = run_cell(s, base=tiny_bases[s.resolved().base_key], curve=curve)
+        row = run_cell(s, base=bases[s.resolved().base_key], curve=curve)
         assert_rows_match(result.row, row)
         assert result.row["cell_id"] == row["cell_id"]
         assert len(result.curve) == len(curve)
@@ -172,96 +163,204 @@ def test_whole_tiny_cells_give_run_cells_rows_and_curves(tiny_bases):
             assert p == pytest.approx(q, rel=1e-4, abs=1e-6)  # probes included
 
 
-def test_member_does_not_depend_on_its_pack_mates():
-    me = spec(method="asp", paired=3, trial=0, train_steps=40)
-    mates = [spec(method=m, paired=k, trial=t, unpaired_size=u, train_steps=40)
-             for m, k, t, u in [("pc", 6, 1, 64), ("osp", 0, 0, 64), ("asp", 9, 2, 100), ("pc", 0, 3, 64)]]
-    alone, crowd = make_pack([me]), make_pack(mates[:2] + [me] + mates[2:])
-    for _ in range(40):
-        alone.train_step()
-        crowd.train_step()
-    a, b = alone.members[0], crowd.members[2]
-    # Its own random stream, consumed alike, so the same actions and positions ...
-    assert torch.equal(a.gen.get_state(), b.gen.get_state())
-    assert torch.equal(alone.pos[0], crowd.pos[2])
-    # ... and the same weights up to float rounding (other shapes round differently) ...
-    assert torch.allclose(flat_params(a.agents), flat_params(b.agents), atol=1e-5)
-    assert torch.allclose(flat_params(a.disc), flat_params(b.disc), atol=1e-5)
-    assert alone.loss_columns(0) == pytest.approx(crowd.loss_columns(2), rel=1e-4)
+def test_run_pack_restored_mid_run_gives_the_rows_of_an_uninterrupted_run(tiny_run, monkeypatch):
+    """The whole-cell path: a pack's checkpoint (the last one, inside a chunk of draws) taken
+    through torch.save, restored into a new run_pack of the same cells: every member's row and curve
+    are the uninterrupted run's, bit for bit. A trainer may place its members in another order than
+    the specs' (levers: ASP first), which the checkpoint must not mind."""
+    domain, specs, states = tiny_run["domain"], tiny_run["specs"], tiny_run["states"]
+    monkeypatch.setattr(packed_module(domain), "CHUNK", TINY_CHUNK)
+    assert method_weights(specs[0]).needs_adversary is False  # a PC member first: a trainer may reorder
+    assert len(states) == (TINY[domain]["train_steps"] - 1) // EVERY
+    steps = TINY[domain]["train_steps"]
+    # the last checkpoint that falls inside a chunk of draws (what a sweep restores from, mostly)
+    at = max(k for k in range(EVERY, steps, EVERY) if k % TINY_CHUNK)
+    state = torch.load(io.BytesIO(states[at // EVERY - 1]), weights_only=False)
+    assert state["cell_ids"] == [s.resolved().cell_id for s in specs] and state["trainer"]["step"] == at
+    resumed = run_pack(specs, bases=tiny_run["bases"], curves=True, restore=state)
+    for a, b in zip(tiny_run["results"], resumed):
+        assert a.error is None and b.error is None
+        assert comparable(b.row) == comparable(a.row) and b.curve == a.curve
+        assert a.row["resumed_from_step"] is None and b.row["resumed_from_step"] == at
 
 
-def test_member_is_bit_for_bit_the_same_beside_any_mate_of_the_same_shape():
-    """Where the pack's shapes agree (members, padded paired rows), what the mate is - its
-    method, data, trial, adversary - changes nothing at all in the other member."""
-    me = spec(method="osp", paired=3, trial=0, train_steps=30)
-    runs = []
-    for mate in (spec(method="pc", paired=3, trial=1, train_steps=30),
-                 spec(method="asp", paired=2, trial=2, adversary_loss="non_saturating", unpaired_size=50,
-                      train_steps=30)):
-        pack = make_pack([me, mate])
-        for _ in range(30):
-            pack.train_step()
-        runs.append((flat_params(pack.members[0].agents), pack.loss_columns(0), pack.pos[0].clone()))
-    (p1, l1, x1), (p2, l2, x2) = runs
-    assert torch.equal(p1, p2) and l1 == l2 and torch.equal(x1, x2)
+def test_run_pack_refuses_a_checkpoint_of_another_pack(tiny_run):
+    specs, bases = tiny_run["specs"], tiny_run["bases"]
+    state = torch.load(io.BytesIO(tiny_run["states"][0]), weights_only=False)
+    with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
+        run_pack(specs[:2], bases=bases, restore=state)
+    with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
+        run_pack(list(reversed(specs)), bases=bases, restore=state)
 
 
-def test_diverging_member_is_frozen_and_reported_and_others_go_on():
-    healthy = [spec(method="asp", paired=3, trial=0), spec(method="osp", paired=2, trial=1),
-               spec(method="pc", paired=4, trial=2)]
-    bad, good = spec(method="asp", paired=1, trial=3, lr=1e30), spec(method="asp", paired=1, trial=3, lr=2e-3)
-    runs = {}
-    for name, last in (("bad", bad), ("good", good)):
-        pack = make_pack(healthy + [last])
-        for _ in range(SMALL["train_steps"]):
-            pack.train_step()
-        runs[name] = pack
-    frozen = runs["bad"].members[3]
-    assert frozen.failed and "non-finite" in frozen.error and frozen.failed_step is not None
-    assert torch.isfinite(flat_params(frozen.agents)).all(), "frozen before the non-finite step"
-    assert not runs["good"].members[3].failed
-    for i in range(3):  # the others are exactly what they are beside a healthy fourth member
-        assert not runs["bad"].members[i].failed
-        assert torch.equal(flat_params(runs["bad"].members[i].agents), flat_params(runs["good"].members[i].agents))
-        assert runs["bad"].loss_columns(i) == runs["good"].loss_columns(i)
-
-
-def test_run_pack_reports_a_diverging_member_failed(tiny_bases):
-    specs = [tiny_spec("particles", method="osp", paired=2, trial=0),
-             tiny_spec("particles", method="asp", paired=2, trial=0, lr=1e30)]
-    ok, failed = run_pack(specs, bases=tiny_bases)
+def test_run_pack_reports_a_diverging_member_failed(tiny_run):
+    domain, bases = tiny_run["domain"], tiny_run["bases"]
+    specs = [tiny_spec(domain, method="osp", paired=2, trial=0), tiny_spec(domain, method="asp", paired=2, trial=0,
+                                                                            lr=1e30)]
+    ok, failed = run_pack(specs, bases=bases)
     assert failed.row is None and "non-finite" in failed.error
     assert ok.error is None and ok.row["eval_mixed"] == ok.row["eval_mixed"]  # a row, with finite metrics
 
 
-def test_restore_mid_pack_continues_bit_for_bit(monkeypatch):
-    monkeypatch.setattr(packed_mod, "CHUNK", 8)  # several chunks of random draws, restored mid-chunk
-    specs = [spec(**c, train_steps=30) for c in PACKS["mixed"][:6]]
-    data = [member_data(s) for s in specs]
-    whole = make_pack(specs, data)
+# ---- pack-mates ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_member_does_not_depend_on_its_pack_mates(domain):
+    case = case_for(domain)
+    u = case.small["unpaired_size"]
+    me = case.spec(method="asp", paired=3, trial=0, train_steps=40)
+    mates = [case.spec(method=m, paired=k, trial=t, unpaired_size=size, train_steps=40)
+             for m, k, t, size in [("pc", 6, 1, u), ("osp", 0, 0, u), ("asp", 9, 2, 100), ("pc", 0, 3, u)]]
+    alone, crowd = case.make_pack([me]), case.make_pack(mates[:2] + [me] + mates[2:])
+    for _ in range(40):
+        alone.train_step()
+        crowd.train_step()
+    a, b = alone.members[0], crowd.members[2]
+    # Its own random stream, consumed alike, so the same self-play (actions, positions, games) ...
+    assert torch.equal(a.gen.get_state(), b.gen.get_state())
+    assert_states_equal(case.pack_state(alone, 0), case.pack_state(crowd, 2), "self-play state")
+    # ... and the same weights up to float rounding (other shapes round differently) ...
+    assert torch.allclose(flat_params(a.agents), flat_params(b.agents), atol=1e-5)
+    assert torch.allclose(disc_params(a), disc_params(b), atol=1e-5)
+    assert alone.loss_columns(0) == pytest.approx(crowd.loss_columns(2), rel=1e-4)
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_member_is_bit_for_bit_the_same_beside_any_mate_of_the_same_shape(domain):
+    """Where the pack's shapes agree (members, padded paired rows), what the mate is - its method,
+    data, trial, adversary - changes nothing at all in the other member."""
+    case = case_for(domain)
+    me = case.spec(method="osp", paired=3, trial=0, train_steps=30)
+    runs = []
+    for mate in (case.spec(method="pc", paired=3, trial=1, train_steps=30),
+                 case.spec(method="asp", paired=2, trial=2, adversary_loss="non_saturating", unpaired_size=50,
+                           train_steps=30)):
+        pack = case.make_pack([me, mate])
+        for _ in range(30):
+            pack.train_step()
+        runs.append((flat_params(pack.members[0].agents), pack.loss_columns(0), case.pack_state(pack, 0),
+                     pack.members[0].gen.get_state()))
+    (p1, l1, x1, g1), (p2, l2, x2, g2) = runs
+    assert torch.equal(p1, p2) and l1 == l2 and torch.equal(g1, g2)
+    assert_states_equal(x1, x2, "self-play state")
+
+
+# ---- a diverging member ---------------------------------------------------------------------------
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_diverging_members_are_frozen_and_reported_and_others_go_on(domain):
+    """One diverging member of each method (for levers an ASP member's discriminator gradient goes
+    non-finite first, an OSP or PC member's network gradient), beside three healthy ones: the same
+    pack with the three last members healthy is the control."""
+    case = case_for(domain)
+    healthy = [case.spec(method="asp", paired=3, trial=0), case.spec(method="osp", paired=2, trial=1),
+               case.spec(method="pc", paired=4, trial=2)]
+    last = {lr: [case.spec(method=m, paired=1, trial=3 + k, lr=lr) for k, m in enumerate(("asp", "osp", "pc"))]
+            for lr in (1e30, 2e-3)}
+    runs, held = {}, {}
+    for name, lr in (("bad", 1e30), ("good", 2e-3)):
+        pack = case.make_pack(healthy + last[lr])
+        for step in range(case.small["train_steps"]):
+            pack.train_step()
+            if step == 4:  # (the bad members fail in their first updates)
+                held[name] = [(flat_params(m.agents), disc_params(m)) for m in pack.members[3:]]
+        runs[name] = pack
+    for k, frozen in enumerate(runs["bad"].members[3:]):
+        what = f"{frozen.spec.method} member"
+        assert frozen.failed and "non-finite" in frozen.error and frozen.failed_step is not None, what
+        assert frozen.failed_step <= 4, what
+        assert torch.isfinite(flat_params(frozen.agents)).all(), f"{what}: frozen before the non-finite step"
+        # frozen means frozen: its network and its discriminators have not moved since
+        assert torch.equal(held["bad"][k][0], flat_params(frozen.agents)), what
+        assert torch.equal(held["bad"][k][1], disc_params(frozen)), what
+    assert not any(m.failed for m in runs["good"].members)
+    for i in range(3):  # the others are exactly what they are beside healthy members
+        assert not runs["bad"].members[i].failed
+        assert torch.equal(flat_params(runs["bad"].members[i].agents), flat_params(runs["good"].members[i].agents))
+        assert torch.equal(disc_params(runs["bad"].members[i]), disc_params(runs["good"].members[i]))
+        assert runs["bad"].loss_columns(i) == runs["good"].loss_columns(i)
+
+
+# ---- a trainer's checkpoint ------------------------------------------------------------------------
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_restore_mid_pack_continues_bit_for_bit(domain, monkeypatch):
+    monkeypatch.setattr(packed_module(domain), "CHUNK", 8)  # several chunks of random draws, restored mid-chunk
+    case = case_for(domain)
+    specs = [case.spec(**c, train_steps=30) for c in case.packs["mixed"][:6]]
+    data = [case.member_data(s) for s in specs]
+    whole = case.make_pack(specs, data)
     for _ in range(30):
         whole.train_step()
-    first = make_pack(specs, data)
+    first = case.make_pack(specs, data)
     for _ in range(13):
         first.train_step()
     buf = io.BytesIO()
     torch.save(first.state_dict(), buf)
-    resumed = make_pack(specs, data)
+    resumed = case.make_pack(specs, data)
     resumed.load_state_dict(torch.load(io.BytesIO(buf.getvalue()), weights_only=False))
     for _ in range(17):
         resumed.train_step()
-    assert torch.equal(resumed.net.param, whole.net.param) and torch.equal(resumed.dnet.param, whole.dnet.param)
+    for net in ("net", "dnet"):
+        for buffer in ("param", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(getattr(getattr(resumed, net), buffer), getattr(getattr(whole, net), buffer)), \
+                (net, buffer)
     for i in range(len(specs)):
         assert torch.equal(resumed.members[i].gen.get_state(), whole.members[i].gen.get_state())
+        assert_states_equal(case.pack_state(resumed, i), case.pack_state(whole, i), f"member {i}: self-play state")
         assert resumed.loss_columns(i) == whole.loss_columns(i)
         assert resumed.members[i].curve == whole.members[i].curve
 
 
-def test_what_can_share_a_pack():
-    assert supports(spec(method="asp", paired=2))
-    assert not supports(spec(method="asp", paired=2, particles_replay_size=100))  # the reference trainer's
-    assert not supports(spec(method="osp", paired=2, particles_paired_listener=False))
+# ---- the registry ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_a_domain_packs_its_own_cells_only(domain):
+    module = packed_module(domain)
+    s = tiny_spec(domain)
+    assert supports(s) and module.supports(s)
+    assert pack_key(s) == (domain, *module.pack_key(s))
+    assert pack_key(s) == pack_key(tiny_spec(domain, method="asp", paired=3, trial=4, lr=0.1))
+    for other in DOMAINS + ["signaling"]:
+        if other != domain:
+            assert not module.supports(tiny_spec(other))
     assert not supports(tiny_spec("signaling"))
-    assert pack_key(spec(method="pc", paired=1, trial=4, lr=0.1)) == pack_key(spec(method="asp", paired=6))
-    with pytest.raises(ValueError, match="particles_hidden"):
-        make_pack([spec(method="pc", paired=1), spec(method="pc", paired=1, particles_hidden=8)])
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_single_cells_train_as_a_pack_of_one_where_the_domain_says_so(domain):
+    """run_cell's trainer (choose_trainer): a one-member pack where the domain binds `single_cell`,
+    else the reference Trainer (the other checks here compare packs with whichever it is)."""
+    s = tiny_spec(domain, method="asp", paired=2).resolved()
+    d, data = get_domain(domain), case_for(domain).member_data(s)
+    trainer = choose_trainer(s, d, d.new_agents(s, 0), data[0], data[1], method_weights(s))
+    if getattr(packed_module(domain), "single_cell", None) is not None:
+        assert isinstance(trainer, PackOfOne) and trainer.engine == "pack-of-one"
+    else:
+        assert type(trainer) is Trainer and trainer.engine == "autograd"
+
+
+def test_stacked_adam_matches_torch_adam():
+    """StackedParams' one fused Adam step over the stacked buffer (two learning rates) is torch's Adam
+    per module, and the modules' parameters are views of the buffer (loading a state writes it)."""
+    torch.manual_seed(0)
+    modules = [torch.nn.Linear(5, 3) for _ in range(3)]
+    refs = [torch.nn.Linear(5, 3) for _ in range(3)]
+    lrs = [0.01, 0.03, 0.01]
+    for a, b in zip(refs, modules):
+        a.load_state_dict(b.state_dict())
+    stacked = StackedParams(modules, lrs)
+    opts = [torch.optim.Adam(a.parameters(), lr=lr) for a, lr in zip(refs, lrs)]
+    x = torch.randn(7, 5)
+    for _ in range(20):
+        for a, opt in zip(refs, opts):
+            opt.zero_grad()
+            a(x).pow(2).sum().backward()
+            opt.step()
+        for i, b in enumerate(modules):
+            b.zero_grad()
+            b(x).pow(2).sum().backward()
+            for p, (start, n) in zip(b.parameters(), stacked.member_ranges[i]):
+                stacked.grad[start:start + n] = p.grad.reshape(-1)
+        stacked.step()
+    for a, b in zip(refs, modules):
+        for p, q in zip(a.parameters(), b.parameters()):
+            assert torch.allclose(p, q, atol=1e-6)
+    modules[1].load_state_dict({k: torch.zeros_like(v) for k, v in modules[1].state_dict().items()})
+    assert stacked.member_flat(1).abs().sum() == 0 and stacked.member_flat(0).abs().sum() > 0

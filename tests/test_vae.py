@@ -162,7 +162,7 @@ def test_vae_module_shapes():
 def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
     """The fast trainer (self-play and paired rows in one batch per network) computes the
     reference update: same losses, same gradients and weights up to float rounding, same draws."""
-    from asp_dist.training.fast import choose_trainer
+    from asp_dist.training.cell import choose_trainer
     from asp_dist.training.fast.vae import OnePassVAETrainer
     from asp_dist.training.methods import method_weights
     from asp_dist.training.trainer import Trainer

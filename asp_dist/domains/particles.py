@@ -14,9 +14,9 @@ last step is a true terminal). The message is differentiable: the listener's pol
 loss flows back through it into the speaker.
 
 Everything is vectorised over environments; the only Python loops run over time steps.
-The new agents train with hand-derived gradients (asp_dist/training/fast/particles.py); the
-autograd functions here (a2c_update, paired_loss) are the reference that trainer is tested
-against, and train the base.
+The new agents train with hand-derived gradients (asp_dist/training/packed/particles.py, a single
+cell as a pack of one); the autograd functions here (a2c_update, paired_loss) are the reference
+that trainer is tested against, and train the base and the cells it does not implement.
 
 Choices the paper leaves open (measurements in docs/decisions.md, "Particle world"): the target
 is drawn in [-4, 4]² (the ≥ 300 bar is reachable from everywhere there); the reward is paid for

@@ -7,50 +7,35 @@ Pure PyTorch, no Ray: the sweep service wraps this, tests call it directly. Phas
     train  train new agents with the method's loss, L = w_sp·L_sp + λ0·L_p + λ1·L_u
     eval   mixed teams (Eq. 1), both directions, self-play of the new agents and of the base
 
-The full training state can be checkpointed at any step and restored; a restored run gives
-the same row as an uninterrupted one (all randomness flows through saved generators).
+The trainer is chosen per cell (choose_trainer): a particle cell whose knobs the packed particle
+trainer implements trains as a one-member pack of it (asp_dist.training.packed.single), every
+other cell on the reference Trainer (asp_dist.training.trainer: autograd). The full training
+state can be checkpointed at any step and restored; a restored run gives the same row as an
+uninterrupted one (all randomness flows through saved generators).
 """
 
 from __future__ import annotations
 
-import time
-from collections import defaultdict
-from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import torch
 
 from asp_dist.domains import get_domain
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.domains.contract import Domain, ProgressFn, Tensors
 from asp_dist.spec import CellSpec
+from asp_dist.training import packed
 from asp_dist.training.bases import BaseModel, train_accepted_base
-from asp_dist.training.fast import choose_trainer
-from asp_dist.training.methods import method_weights
-from asp_dist.training.row import PHASES, build_row
+from asp_dist.training.fast import fast_trainer
+from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
+from asp_dist.training.methods import LossWeights, method_weights
+from asp_dist.training.packed.single import PackOfOne
+from asp_dist.training.row import build_row
+from asp_dist.training.trainer import Trainer
 
-CHECKPOINT_VERSION = 1
+# 2: the checkpoint names its trainer's engine (version 1 did not).
+CHECKPOINT_VERSION = 2
 
 Checkpoint = Callable[[dict], None]
-
-
-class PhaseTimer:
-    def __init__(self, carried: dict[str, float] | None = None):
-        self.seconds: dict[str, float] = defaultdict(float, carried or {})
-
-    @contextmanager
-    def phase(self, name: str) -> Iterator[None]:
-        wall, cpu = time.perf_counter(), time.process_time()
-        try:
-            yield
-        finally:
-            self.seconds[f"time_{name}_wall_s"] += time.perf_counter() - wall
-            self.seconds[f"time_{name}_cpu_s"] += time.process_time() - cpu
-
-    def columns(self) -> dict[str, float]:
-        out = {f"time_{p}_{k}": float(self.seconds.get(f"time_{p}_{k}", 0.0)) for p in PHASES for k in ("wall_s", "cpu_s")}
-        out["time_total_wall_s"] = sum(out[f"time_{p}_wall_s"] for p in PHASES)
-        out["time_total_cpu_s"] = sum(out[f"time_{p}_cpu_s"] for p in PHASES)
-        return out
 
 
 def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: ProgressFn | None = None,
@@ -63,7 +48,10 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
     progress    progress(phase, done, total, info), called about 100 times during training
     checkpoint  called with the full training state every `checkpoint_every_steps` updates, or
                 every `checkpoint_every_s` seconds when no step interval is given
-    restore     a state previously passed to `checkpoint`: training continues from it
+    restore     a state previously passed to `checkpoint`: training continues from it. A state of
+                another cell is refused (ValueError); a state of another engine than the one that
+                trains this cell now (made by older code: checkpoint_engine) is not restored, and
+                the cell starts over
     curve       a list to fill with the cell's learning curve: ~50 points (dicts with "step",
                 loss terms, discriminator accuracy and D(fake), and at ~10 of them "probe_*"
                 metrics: the domain's evaluation against the base on a tenth of eval_episodes)
@@ -72,7 +60,7 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
     domain = get_domain(spec.domain)
     if restore is not None and restore.get("cell_id") != spec.cell_id:
         raise ValueError(f"checkpoint belongs to cell {restore.get('cell_id')}, not {spec.cell_id}")
-    timer = PhaseTimer(restore["timings"] if restore else None)
+    timer = PhaseTimer()
     base_reused = base is not None
     if base is None:
         with timer.phase("base"):
@@ -89,13 +77,17 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
         trainer = choose_trainer(spec, domain, agents, paired, unpaired, weights)
     if curve is not None:
         trainer.probe = make_probe(spec, domain, base, agents)
+    if restore is not None and checkpoint_engine(restore) != trainer.engine:
+        restore = None  # its state would not load into this trainer: start over
     if restore is not None:
         trainer.load_state_dict(restore["trainer"])
+        for name, seconds in restore["timings"].items():
+            timer.seconds[name] += seconds
     resumed_from = trainer.step if restore is not None else None
 
     def save_state() -> None:
-        checkpoint({"version": CHECKPOINT_VERSION, "cell_id": spec.cell_id, "trainer": trainer.state_dict(),
-                    "timings": dict(timer.seconds)})
+        checkpoint({"version": CHECKPOINT_VERSION, "cell_id": spec.cell_id, "engine": trainer.engine,
+                    "trainer": trainer.state_dict(), "timings": dict(timer.seconds)})
 
     with timer.phase("train"):
         train_to_end(trainer, spec.train_steps, progress, save_state if checkpoint is not None else None,
@@ -115,32 +107,25 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
                      figure=figure, timings=timer.columns(), resumed_from=resumed_from)
 
 
-def make_probe(spec: CellSpec, domain, base: BaseModel, agents: torch.nn.Module):
-    """A cheap evaluation for the learning curve: the domain's own, on a tenth of eval_episodes,
-    with a generator of its own so that probing never changes what is trained."""
-    small = spec.replace(eval_episodes=max(1, spec.eval_episodes // 10))
+def choose_trainer(spec: CellSpec, domain: Domain, agents: torch.nn.Module, paired: Tensors, unpaired: Tensors,
+                   weights: LossWeights) -> Trainer | PackOfOne:
+    """The trainer of one cell, chosen per cell (not by the domain): a one-member pack of the domain's
+    packed trainer where the domain trains its single cells so and the trainer implements every
+    knob value of the spec (asp_dist.training.packed.single_cell_trainer; today particle cells
+    without the replay buffer or the speaker-only paired loss), else the domain's fast trainer
+    (asp_dist.training.fast; today the VAE's), else the reference Trainer."""
+    single = packed.single_cell_trainer(spec, agents, paired, unpaired)
+    if single is not None:
+        return single
+    cls = fast_trainer(spec) or Trainer
+    return cls(spec, domain, agents, paired, unpaired, weights)
 
-    def probe(step: int) -> dict[str, float]:
-        with torch.no_grad():
-            return domain.evaluate(small, base.agents, agents, torch.Generator().manual_seed(spec.seed_for("eval") + step))
 
-    return probe
-
-
-def train_to_end(trainer, steps: int, progress: ProgressFn | None, save_state: Callable[[], None] | None,
-                 checkpoint_every_s: float, checkpoint_every_steps: int | None) -> None:
-    """Run trainer.train_step() until `steps` updates: progress every 1 % of them, and save_state (when
-    given) every `checkpoint_every_steps` updates, or every `checkpoint_every_s` seconds without a
-    step interval -- never after the last update. One loop for a cell and for a pack."""
-    report_every = max(1, steps // 100)
-    last_save = time.monotonic()
-    while trainer.step < steps:
-        trainer.train_step()
-        if progress is not None and (trainer.step % report_every == 0 or trainer.step == steps):
-            progress("train", trainer.step, steps, {})
-        if save_state is not None and trainer.step < steps:
-            due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
-                (time.monotonic() - last_save >= checkpoint_every_s)
-            if due:
-                save_state()
-                last_save = time.monotonic()
+def checkpoint_engine(state: dict) -> str:
+    """The engine (the trainer's `engine`) whose training state a run_cell checkpoint holds. Version 1
+    checkpoints did not say: they came from the reference Trainer ("autograd", a torch.optim state
+    with its param_groups) or from the retired single-cell particle kernel ("fused-particles")."""
+    if "engine" in state:
+        return state["engine"]
+    opt = state["trainer"].get("opt")
+    return "autograd" if isinstance(opt, dict) and "param_groups" in opt else "fused-particles"

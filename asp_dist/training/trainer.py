@@ -25,13 +25,12 @@ PROBE_EVERY = 5  # every 5th point (10 per cell) also evaluates against the base
 
 class Trainer:
     """The training loop shared by every domain and method (the reference path: autograd and
-    torch.optim.Adam). A fast trainer (asp_dist.training.fast) subclasses it and replaces
-    make_optimizer and train_step with an update that computes the same thing."""
+    torch.optim.Adam). It trains every cell that no faster engine implements: run_cell's
+    choose_trainer (asp_dist.training.cell) trains a particle cell as a one-member pack of the
+    hand-derived packed trainer (asp_dist.training.packed.single) where that implements its knobs,
+    and the packed trainers are tested against this one."""
 
-    @classmethod
-    def supports(cls, spec: CellSpec) -> bool:
-        """Whether this trainer implements every knob value of `spec` (the reference does)."""
-        return True
+    engine = "autograd"  # names the format of state_dict() in run_cell's checkpoints
 
     def __init__(self, spec: CellSpec, domain: Domain, agents: torch.nn.Module, paired: Tensors,
                  unpaired: Tensors, weights: LossWeights):

@@ -1,22 +1,21 @@
-"""Fast trainers: the same update as asp_dist.training.trainer.Trainer, computed with fewer
-tensor ops. The trainer is chosen here, per cell, not by the domain: a fast trainer is used
-only where one exists for the domain and it implements every knob value of the spec; the
-reference trainer runs everything else."""
+"""Fast single-cell trainers: the reference update (asp_dist.training.trainer.Trainer) computed with
+fewer or cheaper tensor ops, subclasses of Trainer chosen per cell by
+asp_dist.training.cell.choose_trainer where the domain has one and it implements the spec's knobs.
+(The particle world's fast single-cell path is a one-member pack instead: asp_dist.training.packed.)
+
+    vae.py   OnePassVAETrainer: self-play and paired rows through each network in one batch
+"""
 
 from __future__ import annotations
 
-from asp_dist.domains.contract import Domain, Tensors
 from asp_dist.spec import CellSpec
-from asp_dist.training.fast.particles import FusedParticleTrainer
 from asp_dist.training.fast.vae import OnePassVAETrainer
-from asp_dist.training.methods import LossWeights
 from asp_dist.training.trainer import Trainer
 
-FAST_TRAINERS: dict[str, type[Trainer]] = {"particles": FusedParticleTrainer, "vae": OnePassVAETrainer}
+FAST_TRAINERS: dict[str, type[Trainer]] = {"vae": OnePassVAETrainer}
 
 
-def choose_trainer(spec: CellSpec, domain: Domain, agents, paired: Tensors, unpaired: Tensors,
-                   weights: LossWeights) -> Trainer:
-    fast = FAST_TRAINERS.get(domain.name)
-    cls = fast if fast is not None and fast.supports(spec) else Trainer
-    return cls(spec, domain, agents, paired, unpaired, weights)
+def fast_trainer(spec: CellSpec) -> type[Trainer] | None:
+    """The fast trainer class for `spec`, or None where its domain has none or it lacks a knob value."""
+    cls = FAST_TRAINERS.get(spec.domain)
+    return cls if cls is not None and cls.supports(spec) else None

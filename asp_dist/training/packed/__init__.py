@@ -9,7 +9,8 @@ result is the one its single-cell run gives up to float rounding, whatever its p
                    step), column, retain_freed_memory (the allocator setting lever packs need)
     driver.py      run_pack for any domain: bases, data, the packed trainer, checkpoints, evaluation,
                    rows; PackedResult
-    particles.py   PackedParticleTrainer (the fused particle update, batched)
+    single.py      PackOfOne: one cell as a one-member pack, with the interface run_cell uses
+    particles.py   PackedParticleTrainer (the particle update, batched, hand-derived gradients)
     levers.py      PackedLeverTrainer (the CommNet lever update, batched, hand-derived gradients)
 
 A domain has a packed trainer when a module is registered for it in PACKED below. Such a module
@@ -23,6 +24,13 @@ has three functions, which this package dispatches to by the cells' domain:
 Its run_pack is driver.run_pack bound to its trainer, so every registered domain checkpoints and
 restores a pack. The sweep (asp_dist.sweep.packing, asp_dist.sweep.tune) uses only the functions
 of this package, never a domain's module directly.
+
+A module may also bind ``single_cell = partial(single.PackOfOne, MyTrainer)``: then run_cell trains
+each cell of the domain that `supports` accepts as a one-member pack (single_cell_trainer below,
+asked by asp_dist.training.cell.choose_trainer); the reference Trainer runs the domain's other cells
+and every cell of a domain without it. The particle world binds it (its packed trainer, with one
+member, is faster than the hand-derived single-cell kernel it replaced: docs/decisions.md); the lever
+world does not (its single cells run on the reference Trainer).
 """
 
 from __future__ import annotations
@@ -31,9 +39,12 @@ import importlib
 from types import ModuleType
 from typing import Callable, Sequence
 
-from asp_dist.domains.contract import ProgressFn
+import torch
+
+from asp_dist.domains.contract import ProgressFn, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.packed.driver import PackedResult
+from asp_dist.training.packed.single import PackOfOne
 
 # domain -> module with supports / pack_key / run_pack. One line registers a domain's packed trainer.
 PACKED: dict[str, str] = {
@@ -52,6 +63,17 @@ def supports(spec: CellSpec) -> bool:
     """Whether `spec` can train in a pack: its domain has a packed trainer that implements its knobs."""
     module = packed_module(spec.domain)
     return module is not None and bool(module.supports(spec))
+
+
+def single_cell_trainer(spec: CellSpec, agents: torch.nn.Module, paired: Tensors,
+                        unpaired: Tensors) -> PackOfOne | None:
+    """The trainer of one cell as a one-member pack, where its domain trains single cells so
+    (its module binds `single_cell`) and supports the cell's knobs; else None."""
+    module = packed_module(spec.domain)
+    single = getattr(module, "single_cell", None)
+    if single is None or not module.supports(spec):
+        return None
+    return single(spec, agents, paired, unpaired)
 
 
 def pack_key(spec: CellSpec) -> tuple:
@@ -82,4 +104,5 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict | None = None, curves: bo
                            restore=restore, checkpoint_every_s=checkpoint_every_s)
 
 
-__all__ = ["PACKED", "PackedResult", "pack_key", "packed_module", "run_pack", "supports"]
+__all__ = ["PACKED", "PackOfOne", "PackedResult", "pack_key", "packed_module", "run_pack", "single_cell_trainer",
+           "supports"]

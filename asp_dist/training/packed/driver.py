@@ -25,7 +25,7 @@ from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
-from asp_dist.training.cell import PhaseTimer, make_probe, train_to_end
+from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
 from asp_dist.training.row import build_row
 
@@ -137,6 +137,13 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
     if not live:
         return results
 
+    # A checkpoint names its pack by the live members' cell ids in the order of `specs` (the sweep
+    # compares them with its own); the trainer's state is in the trainer's order, which follows.
+    # Refused before any data is sampled.
+    live_ids = [specs[i].cell_id for i in live]
+    if restore is not None and restore.get("cell_ids") != live_ids:
+        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
+
     # P and U depend on (base, paired), not the method: sample each once, in run_cell's order.
     paired, unpaired, agents, data_cache = {}, {}, {}, {}
     for i in live:
@@ -157,11 +164,6 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
                 unpaired[i] = u_cache[spec.unpaired_size]
             agents[i] = domain.new_agents(spec, spec.seed_for("init"))
 
-    # A checkpoint names its pack by the live members' cell ids in the order of `specs` (the sweep
-    # compares them with its own); the trainer's state is in the trainer's order, which follows.
-    live_ids = [specs[i].cell_id for i in live]
-    if restore is not None and restore.get("cell_ids") != live_ids:
-        raise ValueError(f"checkpoint belongs to a pack of {restore.get('cell_ids')}, not of {live_ids}")
     order = [live[k] for k in trainer_class.member_order([specs[i] for i in live])]
     wall, cpu = time.perf_counter(), time.process_time()
     trainer = trainer_class([specs[i] for i in order], [paired[i] for i in order], [unpaired[i] for i in order],

@@ -1,8 +1,8 @@
 """K lever cells trained as one batched model: the packed counterpart of the single-cell path.
 
-The sweep trains a lever cell on the reference trainer (asp_dist.training.fast.choose_trainer has
-no fast lever trainer, so asp_dist.training.trainer.Trainer: autograd and torch.optim.Adam): per
-update ε-greedy deep Q-learning on batch_size fresh games plus batch_size replayed ones, the paired
+run_cell trains a single lever cell on the reference trainer (this module binds no `single_cell`,
+so asp_dist.training.cell.choose_trainer picks asp_dist.training.trainer.Trainer: autograd and
+torch.optim.Adam): per update ε-greedy deep Q-learning on batch_size fresh games plus batch_size replayed ones, the paired
 loss, and for ASP one discriminator per CommNet channel (f1, f2). This trainer stacks the
 parameters of K cells ("members") on a leading dimension and computes the same update for all of
 them with batched ops and hand-derived gradients; one batched Adam step (torch._fused_adam_ over the

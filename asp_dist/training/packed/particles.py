@@ -1,11 +1,25 @@
-"""K particle cells trained as one batched model: the packed counterpart of the fused trainer.
+"""K particle cells trained as one batched model, with hand-derived gradients; a single cell is a pack of one.
 
 A particle cell is 25,000 updates of batch 8 through networks of a few thousand weights; its
-cost is the number of tensor operations, not arithmetic. This trainer stacks the parameters of
-K cells ("members") on a leading dimension and runs the fused trainer's update
-(asp_dist/training/fast/particles.py: same terms, same order, same hand-derived gradients) with
-batched matmuls, so that each tensor op serves K cells; one batched Adam step
-(torch._fused_adam_, one pass over the stacked buffer) updates them all.
+cost is the number of tensor operations, not arithmetic. At batch 8 an update of the reference
+path (asp_dist.training.trainer.Trainer driving particles.a2c_update, paired_loss and
+training.adversary.Adversaries through autograd and torch.optim.Adam) is ~500 tiny tensor ops,
+and its time is per-op overhead: graph building, two backward passes, two optimisers. This
+trainer computes the same update (same terms, same order, same random draws) with explicit
+forward and backward passes and no graph, and stacks the parameters of K cells ("members") on a
+leading dimension, so that each tensor op serves K cells (batched matmuls); one batched Adam step
+(torch._fused_adam_, one pass over the stacked buffer) updates them all. run_cell trains a
+particle cell as a one-member pack of it (`single_cell`, asp_dist.training.packed.single), which
+is faster than the single-cell hand-derived kernel it replaced (docs/decisions.md, "Fused
+particle kernel retired"). tests/test_packed_particles.py checks the one-member pack against the
+autograd reference, tests/test_packed.py packs of every size.
+
+The order of one update is the reference's:
+  1. self-play rollout (A2C, messages kept) and the paired forward pass;
+  2. ASP: disc_steps BCE steps of the discriminator on U (real) vs. the rollout's messages (fake);
+  3. the model's gradient of  w_sp·L_sp + λ0·L_p + λ1·L_u, with L_u through the updated
+     discriminator; one Adam step.
+The paired rows ride along with the first rollout step, so each layer sees one batch.
 
 What stays per member, so that a member's result does not depend on its pack-mates:
 
@@ -13,14 +27,14 @@ What stays per member, so that a member's result does not depend on its pack-mat
   loss kind, γ, the entropy and value coefficients, both learning rates: per-member columns;
 - data: its own paired set (padded to the pack's largest, padded rows weighted 0), its own U,
   its own trial's target;
-- random streams: its own generator, seeded as the single-cell trainer seeds it, drawn in the
-  single-cell order. torch.multinomial(p, 1) *is* argmax(p / Exp(1)) with the Exp(1) draws
+- random streams: its own generator, seeded as the reference Trainer seeds it, drawn in its
+  order. torch.multinomial(p, 1) *is* argmax(p / Exp(1)) with the Exp(1) draws
   taken from the generator (ATen's one-sample path), so the draws of up to CHUNK updates
   (Exp(1) per action, uniform re-spawns when an episode ends, indices into U) are made ahead,
-  member by member with that member's generator and in the order the single-cell update makes
+  member by member with that member's generator and in the order the reference update makes
   them, and the batched update consumes them; episode ends are known in advance (the envs
   start staggered and advance one step per rollout step), so nothing in the draws depends on
-  values. A generator ends training in the single-cell run's state.
+  values. A generator ends training in the state the reference Trainer leaves it in.
 
 Independence of pack-mates: no op mixes members (batched matmuls, elementwise ops, reductions
 along rows or features), padded rows add exact zeros, and a frozen member keeps its place in
@@ -30,9 +44,9 @@ paired rows); with other shapes a few kernels round differently (a batched matmu
 member and one output column takes a gemv path; the last elements of a vectorised elementwise
 op over the whole stack take the scalar path), and the member's weights then differ from their
 run in another pack by float rounding (about 1e-7 after 100 updates), as they differ from the
-single-cell run. Over a whole cell such a difference can flip a sampled action and send the
+reference Trainer's. Over a whole cell such a difference can flip a sampled action and send the
 run down another, equally likely, trajectory: rows are reproducible for a fixed packing, not
-across packings. tests/test_packed.py checks both.
+across packings (a single cell is the packing of one). tests/test_packed.py checks both.
 
 A member whose gradient becomes non-finite (checked every update, before the Adam step) or
 whose recorded loss does is frozen: its gradients are zeroed and its momentum cleared, so Adam
@@ -43,8 +57,8 @@ but never read by another member.
 Packs: any mix of methods, paired counts, trials and per-member knobs, provided the members
 agree on the fields in SHARED (tensor shapes, the length of training). Mixed packs compute
 the union of the members' work (a PC member rides along in the rollout with weight 0), so
-packs of one method are cheapest. Knob values the fused trainer does not implement (replay
-buffer, speaker-only paired loss) are not packable: `supports`.
+packs of one method are cheapest. Knob values this update does not implement (replay buffer,
+speaker-only paired loss) are not packable (`supports`); the reference Trainer runs those cells.
 """
 
 from __future__ import annotations
@@ -61,9 +75,9 @@ from asp_dist.domains.contract import Tensors
 from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.fast.particles import FusedParticleTrainer
 from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import driver
+from asp_dist.training.packed.single import PackOfOne
 from asp_dist.training.packed.stacked import (
     TERMS,
     PackMember,
@@ -84,9 +98,11 @@ CHUNK = 128  # updates whose random draws are made ahead
 
 
 def supports(spec: CellSpec) -> bool:
-    """Whether `spec` can train in a pack: a particle cell the fused trainer implements."""
+    """Whether `spec` can train in a pack (or as a pack of one): a particle cell of the on-policy
+    update with the listener term in the paired loss. The replay buffer and the speaker-only paired
+    loss run on the reference Trainer."""
     spec = spec.resolved()
-    return spec.domain == "particles" and FusedParticleTrainer.supports(spec)
+    return spec.domain == "particles" and spec.particles_replay_size == 0 and spec.particles_paired_listener
 
 
 def pack_key(spec: CellSpec) -> tuple:
@@ -100,11 +116,13 @@ class Member(PackMember):
     """One cell of a pack, with its networks."""
 
     agents: ParticleAgents  # parameters are views of the pack's buffer: always current
-    disc: torch.nn.Module | None  # likewise, for ASP members
+    discs: tuple[torch.nn.Module, ...]  # (the discriminator,) of an ASP member, likewise; else ()
 
 
 class _Rollout(NamedTuple):
-    """As fast.particles.Rollout, with a leading member dimension."""
+    """What the backward pass needs from one update's forward pass, per member (leading dimension).
+    Speaker and listener rows are [step 0's B envs, the n paired rows, steps 1..K-1's envs]; the
+    rest has the K·B env rows."""
 
     speaker_in: torch.Tensor
     speaker_hidden: torch.Tensor
@@ -131,7 +149,7 @@ def _lin_back(dy: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, grad_weig
 class PackedParticleTrainer(PackRecords):
     """K particle cells as one batched model; train_step() is one update of every member.
 
-    specs, paired, unpaired, agents: one entry per member, as the single-cell trainer gets them
+    specs, paired, unpaired, agents: one entry per member, as a single cell's trainer gets them
     (asp_dist.training.cell.run_cell: P and U from the member's base, agents freshly initialised).
     The agents' parameters are re-pointed into the pack's buffer. After training, member i's
     `members[i].agents` holds its trained weights, `loss_columns(i)` its row's loss_* columns and
@@ -150,7 +168,8 @@ class PackedParticleTrainer(PackRecords):
             raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
         for s in specs:
             if not supports(s):
-                raise ValueError(f"{s.cell_id} cannot be packed (particle cells of the fused trainer's knobs only)")
+                raise ValueError(f"{s.cell_id} cannot be packed (particle cells without replay or speaker-only "
+                                 "paired loss only)")
             if pack_key(s) != pack_key(specs[0]):
                 diff = [n for n in SHARED if getattr(s, n) != getattr(specs[0], n)]
                 raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
@@ -176,7 +195,7 @@ class PackedParticleTrainer(PackRecords):
                 discs.append(disc)
             states.append(domain.init_self_play(spec, a, gen) if weights.needs_self_play else {})
             n = len(p["state"]) if weights.paired != 0.0 else 0
-            self.members.append(Member(spec=spec, weights=weights, agents=a, disc=disc, gen=gen, n_paired=n,
+            self.members.append(Member(spec=spec, weights=weights, agents=a, discs=(disc,) if disc is not None else (), gen=gen, n_paired=n,
                                        terms=member_terms(weights, n)))
         mem = self.members
         self.any_self_play = any(m.self_play for m in mem)
@@ -202,7 +221,7 @@ class PackedParticleTrainer(PackRecords):
             self.dlayers = [(v[2 * i], v[2 * i].transpose(1, 2), v[2 * i + 1], g[2 * i], g[2 * i + 1])
                             for i in range(len(v) // 2)]
 
-        # ---- per-member constants of the update (the fused trainer's Python scalars) -----------------
+        # ---- per-member constants of the update (the reference's Python scalars) ---------------------
         n_max = max(m.n_paired for m in mem)
         self.n = n_max
         N = B * self.Kr
@@ -271,7 +290,7 @@ class PackedParticleTrainer(PackRecords):
         self._init_records()
         self._alloc_draws()
 
-    # ---- random draws, made ahead per member in the single-cell order ---------------------------
+    # ---- random draws, made ahead per member in the reference Trainer's order -------------------
     def _alloc_draws(self) -> None:
         M, B, Kr = self.M, self.B, self.Kr
         self.E = torch.ones(CHUNK * Kr, M, B, N_ACTIONS)    # Exp(1) per action (1 for members without self-play)
@@ -284,7 +303,7 @@ class PackedParticleTrainer(PackRecords):
     def _draw_chunk(self) -> None:
         """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member:
         per rollout step the Exp(1) of torch.multinomial and, when episodes end, spawn()'s uniforms;
-        then the disc_steps batches of indices into U. The same calls the fused trainer makes."""
+        then the disc_steps batches of indices into U. The same calls the reference Trainer makes."""
         start, S = self.step, min(CHUNK, self.train_steps - self.step)
         Kr, B, T, ub, ds = self.Kr, self.B, self.T, self.ub, self.disc_steps
         self.chunk_gen_states = [m.gen.get_state() for m in self.members]
@@ -332,7 +351,8 @@ class PackedParticleTrainer(PackRecords):
         return h, torch.baddbmm(self.lb2, h, self.lw2T).log_softmax(-1)
 
     def _rollout(self, j: int) -> _Rollout:
-        """The fused trainer's rollout for every member; the paired rows join step 0."""
+        """particles.a2c_update's rollout and returns for every member, without a graph; the paired
+        rows join step 0."""
         M, B, Kr, T, n = self.M, self.B, self.Kr, self.T, self.n
         pos = self.pos
         spk_x, spk_h, spk_m, lis_in, lis_h, lis_logp, acts, feats, rews, dones = ([] for _ in range(10))
@@ -535,3 +555,5 @@ class PackedParticleTrainer(PackRecords):
 # run_pack(specs, *, bases=None, curves=False, progress=None, checkpoint=None, restore=None,
 #          checkpoint_every_s=30.0, checkpoint_every_steps=None) -> list[PackedResult]: see driver.run_pack.
 run_pack = partial(driver.run_pack, PackedParticleTrainer)
+# A single particle cell (run_cell) is a pack of one, wherever `supports` accepts it.
+single_cell = partial(PackOfOne, PackedParticleTrainer)

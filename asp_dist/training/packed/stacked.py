@@ -28,7 +28,7 @@ from asp_dist.training.methods import LossWeights, lambda_factor
 from asp_dist.training.row import LOSS_TERMS
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
 
-BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's and FlatAdam's defaults
+BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults
 # What each member records per update (the single-cell trainers' diagnostics), in column order.
 TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
 COL = {name: i for i, name in enumerate(TERMS)}
@@ -44,8 +44,8 @@ class StackedParams:
     """The parameters of M modules of one architecture, stacked: each parameter tensor becomes a
     contiguous (M, *shape) block of one flat buffer (tensor-major, so that batched matmuls write
     their gradients into contiguous blocks), with a matching gradient buffer and Adam moments.
-    Each module's parameters are re-pointed to views of its slice of the blocks (as FlatAdam does
-    for one module), so the modules see every update."""
+    Each module's parameters are re-pointed to views of its slice of the blocks, so the modules see
+    every update (and loading a module's state writes the buffer)."""
 
     def __init__(self, modules: Sequence[torch.nn.Module], lrs: Sequence[float]):
         shapes = [tuple(p.shape) for p in modules[0].parameters()]
@@ -110,7 +110,7 @@ class StackedParams:
 
     def step(self) -> None:
         """One Adam step of every member from the current contents of `grad` (torch's fused Adam
-        kernel: one pass over the buffer; FlatAdam's arithmetic up to rounding)."""
+        kernel: one pass over the buffer; torch.optim.Adam's arithmetic up to rounding)."""
         self.zero_frozen_grads()
         self.steps.add_(1)
         for lr, params, grads, avgs, sqs in self.groups:

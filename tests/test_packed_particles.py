@@ -1,0 +1,146 @@
+"""The particle world's packed trainer (asp_dist/training/packed/particles.py), what is particular to it:
+a single particle cell trains as a one-member pack (run_cell's choose_trainer), and that pack's
+hand-derived update against the autograd reference, for every method and both adversarial losses,
+rollouts longer than one step, deeper discriminators, several discriminator steps and λ1 schedules;
+what can share a pack. Checks of every packed trainer (packs of any size against the reference,
+whole cells, pack-mates, divergence, checkpoints) are in tests/test_packed.py."""
+
+from __future__ import annotations
+
+import io
+
+import pytest
+import torch
+from budgets import tiny_spec
+from packed_cases import PARTICLES, flat_grads, flat_params
+
+from asp_dist.domains import get_domain
+from asp_dist.spec import CellSpec
+from asp_dist.training.bases import train_accepted_base
+from asp_dist.training.cell import checkpoint_engine, choose_trainer, run_cell
+from asp_dist.training.methods import method_weights
+from asp_dist.training.packed import PackOfOne, pack_key, supports
+from asp_dist.training.row import comparable
+from asp_dist.training.trainer import Trainer
+
+# Four updates (or eight, for the λ1 schedules): the pack makes the draws of a whole cell ahead, so
+# its generator ends where the reference's does.
+SMALL = dict(domain="particles", particles_hidden=16, particles_message_dim=12, unpaired_size=64, train_steps=4)
+DOMAIN = get_domain("particles")
+
+
+def trainer_pair(**changes) -> tuple[Trainer, PackOfOne]:
+    """The reference and run_cell's trainer (a pack of one) from the same spec, data, initial weights and RNG."""
+    spec = CellSpec(**{**SMALL, **changes}).resolved()
+    base = DOMAIN.new_agents(spec, 99)
+    gen = torch.Generator().manual_seed(0)
+    paired = DOMAIN.paired(spec, base, spec.paired, gen) if spec.paired else {}
+    weights = method_weights(spec)
+    unpaired = DOMAIN.unpaired(spec, base, spec.unpaired_size, gen) if weights.needs_adversary else {}
+    ref = Trainer(spec, DOMAIN, DOMAIN.new_agents(spec, 1), paired, unpaired, weights)
+    single = choose_trainer(spec, DOMAIN, DOMAIN.new_agents(spec, 1), paired, unpaired, weights)
+    assert isinstance(single, PackOfOne)
+    return ref, single
+
+
+@pytest.mark.parametrize("changes", [
+    dict(method="pc", paired=4),
+    dict(method="osp", paired=0),
+    dict(method="osp", paired=5),
+    dict(method="asp", paired=0),
+    dict(method="asp", paired=4),
+    dict(method="asp", paired=3, adversary_loss="non_saturating"),
+    dict(method="asp", paired=2, particles_rollout_len=3),
+    dict(method="asp", paired=2, disc_layers=2, unpaired_batch=5),
+    dict(method="asp", paired=2, disc_steps=3, unpaired_batch=6),
+    dict(method="asp", paired=3, lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5, train_steps=8),
+    dict(method="asp", paired=3, lambda_unpaired_schedule="anneal", lambda_schedule_frac=0.5, train_steps=8),
+], ids=lambda c: "-".join(f"{k}={v}" for k, v in c.items()))
+def test_single_cell_update_equals_autograd(changes):
+    ref, single = trainer_pair(**changes)
+    pack, member = single.pack, single.member
+    for step in range(ref.spec.train_steps):
+        ref.train_step()
+        single.train_step()
+        # Same model gradient (autograd leaves it in .grad; the pack in its flat buffer) ...
+        expected = flat_grads(ref.agents)
+        assert torch.allclose(pack.net.member_flat(0, pack.net.grad), expected, rtol=1e-4,
+                              atol=1e-6 * expected.abs().max()), f"step {step}"
+        # ... so the same parameters after each Adam step, for the agents (the caller's module: its
+        # parameters are views of the pack's buffer) and the discriminator.
+        for a, b in zip(ref.agents.parameters(), single.agents.parameters()):
+            assert torch.allclose(a, b, atol=1e-5)
+        if ref.adversaries is not None:
+            assert torch.allclose(flat_params(ref.adversaries), flat_params(member.discs[0]), atol=1e-5)
+    assert single.step == ref.step == ref.spec.train_steps
+    if "pos" in ref.sp_state:
+        assert torch.equal(ref.sp_state["pos"], pack.pos[0]), "the same actions were sampled"
+    assert torch.equal(ref.gen.get_state(), member.gen.get_state()), "the same random draws were made"
+
+
+def test_single_cell_loss_diagnostics_and_curve_equal_the_reference():
+    ref, single = trainer_pair(method="asp", paired=4, train_steps=10)
+    for _ in range(10):
+        ref.train_step()
+        single.train_step()
+    expected, got = ref.loss_columns(), single.loss_columns()
+    assert expected.keys() == got.keys()
+    for name in expected:
+        assert got[name] == pytest.approx(expected[name], rel=1e-4, abs=1e-6), name
+    assert len(single.curve) == len(ref.curve) == 10
+    for p, q in zip(single.curve, ref.curve):
+        assert p.keys() == q.keys() and p == pytest.approx(q, rel=1e-4, abs=1e-6)
+
+
+def test_what_trains_as_a_pack_and_what_on_the_reference():
+    spec = PARTICLES.spec
+    assert supports(spec(method="asp", paired=2))
+    for knobs in (dict(particles_replay_size=100), dict(particles_paired_listener=False)):
+        s = spec(method="osp", paired=2, **knobs)
+        assert not supports(s)  # not in a pack, and not as a pack of one: the reference Trainer's
+        trainer = choose_trainer(s, DOMAIN, DOMAIN.new_agents(s, 0), {}, {}, method_weights(s))
+        assert type(trainer) is Trainer
+    assert pack_key(spec(method="pc", paired=1, trial=4, lr=0.1)) == pack_key(spec(method="asp", paired=6))
+    no_data = [({}, {})] * 2  # (refused before the data is read)
+    with pytest.raises(ValueError, match="particles_hidden"):
+        PARTICLES.make_pack([spec(method="pc", paired=1), spec(method="pc", paired=1, particles_hidden=8)], no_data)
+    with pytest.raises(ValueError, match="cannot be packed"):
+        PARTICLES.make_pack([spec(method="pc", paired=1, particles_replay_size=100)], no_data[:1])
+
+
+def test_a_diverging_single_cell_fails():
+    """A pack freezes a diverging member and goes on; a cell alone has nothing to go on with: run_cell's
+    trainer raises (as the reference does, sampling from a non-finite policy)."""
+    ref, single = trainer_pair(method="asp", paired=2, lr=1e30)
+    for trainer, message in ((ref, "probability tensor contains"), (single, "non-finite")):
+        with pytest.raises(RuntimeError, match=message):
+            for _ in range(4):
+                trainer.train_step()
+    assert single.member.failed and torch.isfinite(flat_params(single.agents)).all()
+
+
+def test_a_checkpoint_of_another_engine_starts_the_cell_over():
+    """Checkpoints name their engine; one this cell's trainer cannot load (the retired fused kernel's,
+    from before the engine was named) is not restored: the cell starts over and gives the row of an
+    uninterrupted run."""
+    spec = tiny_spec("particles", method="osp", paired=2)
+    base = train_accepted_base(spec)
+    saved = []
+
+    def keep(state):  # through bytes, as a checkpoint on disk would be
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        saved.append(buf.getvalue())
+
+    row = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=15)
+    states = [torch.load(io.BytesIO(b), weights_only=False) for b in saved]
+    # (that the cell's own checkpoints restore bit for bit: tests/test_particles.py)
+    assert [s["engine"] for s in states] == ["pack-of-one"] * 2 and checkpoint_engine(states[0]) == "pack-of-one"
+    # A version-1 checkpoint of the fused kernel: a Trainer-shaped state with FlatAdam's optimiser state.
+    fused = {"version": 1, "cell_id": states[0]["cell_id"], "timings": {"time_train_cpu_s": 99.0},
+             "trainer": {"step": 15, "opt": {"steps": 15, "exp_avg": torch.zeros(3), "exp_avg_sq": torch.zeros(3)}}}
+    assert checkpoint_engine(fused) == "fused-particles"
+    assert checkpoint_engine({"version": 1, "trainer": {"opt": {"state": {}, "param_groups": []}}}) == "autograd"
+    over = run_cell(spec, base=base, restore=fused)
+    assert over["resumed_from_step"] is None and over["time_train_cpu_s"] < 99.0
+    assert comparable(over) == comparable(row)
