@@ -43,15 +43,22 @@ def test_base_for_other_settings_is_refused(tiny_signaling):
         run_cell(tiny_signaling, base=base)
 
 
-@pytest.mark.parametrize("method", ["osp", "asp"])
-def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
-    spec = tiny_signaling.replace(method=method)
-    saved = []
+def checkpoint_sink():
+    """A list of saved checkpoints and the callback that fills it, through bytes as on disk."""
+    saved: list[bytes] = []
 
-    def keep(state):  # through bytes, as a checkpoint on disk would be
+    def keep(state):
         buf = io.BytesIO()
         torch.save(state, buf)
         saved.append(buf.getvalue())
+
+    return saved, keep
+
+
+@pytest.mark.parametrize("method", ["osp", "asp"])
+def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
+    spec = tiny_signaling.replace(method=method)
+    saved, keep = checkpoint_sink()
 
     uninterrupted = run_cell(spec, checkpoint=keep, checkpoint_every_steps=20)
     assert len(saved) == 2  # steps 20 and 40 of 60
@@ -64,12 +71,7 @@ def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
 
 def test_a_checkpoint_from_before_engines_were_named_still_restores(tiny_signaling):
     """Version 1 checkpoints did not name their engine; the reference Trainer's still load."""
-    saved = []
-
-    def keep(state):  # through bytes, as a checkpoint on disk would be
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        saved.append(buf.getvalue())
+    saved, keep = checkpoint_sink()
 
     uninterrupted = run_cell(tiny_signaling, checkpoint=keep, checkpoint_every_steps=30)
     state = torch.load(io.BytesIO(saved[0]), weights_only=False)
