@@ -183,6 +183,10 @@ def one_packed(domain: str, k: int, method: str | None, updates: int, blocks: in
         out.update(rss_single_mib=peak_rss_mib(), rss_single_cell=asp.cell_id)
         del trainer
     specs = grid_cells(domain, per_trial if k == 1 else k, method)
+    steps = min(s.train_steps for s in specs)
+    if WARMUP + blocks * updates > steps:  # a pack refuses to train past its cells' end
+        raise SystemExit(f"{domain}: {WARMUP} warm-up + {blocks} blocks x {updates} updates exceeds the cells' "
+                         f"train_steps ({steps}); lower --updates or --blocks")
     data = cell_data(specs)
     out["rss_data_mib"] = peak_rss_mib()
     packs = [build_pack(trainer_class, [s], [d]) for s, d in zip(specs, data)] if k == 1 else \

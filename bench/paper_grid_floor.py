@@ -9,7 +9,7 @@ Work counted (forward + backward = 3 x forward, 2 flop per multiply-accumulate):
   discriminator), the paired pool and U encoded by the base, and the evaluation on eval_episodes
   test images (both encoders, four decodes). The ten cheap probes per cell are left out.
 - VAE bases: one per distinct base key: base_train_steps x base_update_flops + its test evaluation.
-- Particles and levers: an upper-bound estimate, 6 x (parameters of the new agents, plus the
+- Particles and levers: a rough estimate, 6 x (parameters of the new agents, plus the
   discriminator's for ASP) x (rows per update: batch + paired rows + for ASP the real batch) x
   train_steps. Their networks have a few thousand weights: their work is small, and no matmul of
   theirs could run at the rate below, so the floor is the VAE's in practice.
@@ -58,9 +58,10 @@ def vae_base_flops(spec: CellSpec) -> float:
 
 
 def small_cell_flops(spec: CellSpec, params: dict) -> float:
-    """Upper-bound estimate for the particle and lever cells (see the module docstring)."""
+    """A rough estimate for the particle and lever cells (see the module docstring): it leaves out
+    levers' several agents per game, replayed batches, rollout length and disc_steps."""
     w = method_weights(spec)
-    key = (spec.domain, spec.base_key)
+    key = (spec.domain, spec.base_key, spec.disc_hidden, spec.disc_layers)
     if key not in params:
         agents = get_domain(spec.domain).new_agents(spec, 0)
         dims = get_domain(spec.domain).channel_dims(spec)
@@ -100,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             work["vae cells"] += vae_cell_flops(spec)
             bases.setdefault(spec.base_key, spec)
         else:
-            work[f"{spec.domain} cells (upper bound)"] += small_cell_flops(spec, params)
+            work[f"{spec.domain} cells (estimate)"] += small_cell_flops(spec, params)
     work["vae bases"] = sum(vae_base_flops(s) for s in bases.values())
     rate = args.rate or max(matmul_rate()[1] for _ in range(3))
     total = sum(work.values())

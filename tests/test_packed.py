@@ -331,7 +331,7 @@ def test_single_cells_train_as_a_pack_of_one_where_the_domain_says_so(domain):
     d, data = get_domain(domain), case_for(domain).member_data(s)
     trainer = choose_trainer(s, d, d.new_agents(s, 0), data[0], data[1], method_weights(s))
     if getattr(packed_module(domain), "single_cell", None) is not None:
-        assert isinstance(trainer, PackOfOne) and trainer.engine == "pack-of-one"
+        assert isinstance(trainer, PackOfOne) and trainer.engine == f"pack-of-one/{type(trainer.pack).__name__}"
     else:
         assert type(trainer) is Trainer and trainer.engine == "autograd"
 

@@ -20,6 +20,7 @@ from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import checkpoint_engine, choose_trainer, run_cell
 from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import PackOfOne, pack_key, supports
+from asp_dist.training.packed.single import CellDiverged
 from asp_dist.training.row import comparable
 from asp_dist.training.trainer import Trainer
 
@@ -117,6 +118,9 @@ def test_a_diverging_single_cell_fails():
             for _ in range(4):
                 trainer.train_step()
     assert single.member.failed and torch.isfinite(flat_params(single.agents)).all()
+    with pytest.raises(CellDiverged) as diverged:  # the sweep records it as the cell's failure, no retries
+        single.train_step()
+    assert "frozen" not in str(diverged.value)
 
 
 def test_a_checkpoint_of_another_engine_starts_the_cell_over():
@@ -135,7 +139,8 @@ def test_a_checkpoint_of_another_engine_starts_the_cell_over():
     row = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=15)
     states = [torch.load(io.BytesIO(b), weights_only=False) for b in saved]
     # (that the cell's own checkpoints restore bit for bit: tests/test_particles.py)
-    assert [s["engine"] for s in states] == ["pack-of-one"] * 2 and checkpoint_engine(states[0]) == "pack-of-one"
+    engine = "pack-of-one/PackedParticleTrainer"
+    assert [s["engine"] for s in states] == [engine] * 2 and checkpoint_engine(states[0]) == engine
     # A version-1 checkpoint of the fused kernel: a Trainer-shaped state with FlatAdam's optimiser state.
     fused = {"version": 1, "cell_id": states[0]["cell_id"], "timings": {"time_train_cpu_s": 99.0},
              "trainer": {"step": 15, "opt": {"steps": 15, "exp_avg": torch.zeros(3), "exp_avg_sq": torch.zeros(3)}}}

@@ -154,36 +154,65 @@ def test_vae_module_shapes():
     assert out.shape == (5, 784) and float(out.min()) >= 0 and float(out.max()) <= 1
 
 
-@pytest.mark.parametrize("changes", [
-    dict(method="osp"), dict(method="asp"),
-    dict(method="asp", vae_recon_loss="mse", vae_adversary_input="z", vae_paired_reduction="mean"),
-    dict(method="asp", adversary_loss="non_saturating", disc_steps=2),
-], ids=["osp", "asp", "asp-mse-z-mean", "asp-nonsat-2disc"])
-def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
-    """The fast trainer (self-play and paired rows in one batch per network) computes the
-    reference update: same losses, same gradients and weights up to float rounding, same draws."""
-    from asp_dist.training.cell import choose_trainer
-    from asp_dist.training.fast.vae import OnePassVAETrainer
+def vae_trainers(domain, base, classes, **changes):
+    """Trainers of `classes` on the same spec, data and initial weights (tiny VAE, 4 paired)."""
     from asp_dist.training.methods import method_weights
-    from asp_dist.training.trainer import Trainer
 
     spec = tiny(paired=4, **changes).resolved()
     gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, gen)
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, gen)
-    weights = method_weights(spec)
-    reference, fast = (cls(spec, domain, domain.new_agents(spec, 1), paired, unpaired, weights)
-                       for cls in (Trainer, OnePassVAETrainer))
-    assert isinstance(choose_trainer(spec, domain, domain.new_agents(spec, 1), paired, unpaired, weights),
+    return [cls(spec, domain, domain.new_agents(spec, 1), paired, unpaired, method_weights(spec)) for cls in classes]
+
+
+@pytest.mark.parametrize("changes", [
+    dict(method="osp"), dict(method="asp"), dict(method="pc"),
+    dict(method="asp", vae_recon_loss="mse", vae_adversary_input="z", vae_paired_reduction="mean"),
+    dict(method="asp", adversary_loss="non_saturating", disc_steps=2),
+], ids=["osp", "asp", "pc", "asp-mse-z-mean", "asp-nonsat-2disc"])
+def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
+    """The fast trainer (self-play and paired rows in one batch per network) computes the
+    reference update: gradients, weights (VAE and discriminator) and loss columns equal up to float
+    rounding, the same draws. PC has nothing to merge: the reference update itself."""
+    from asp_dist.training.cell import choose_trainer
+    from asp_dist.training.fast.vae import OnePassVAETrainer
+    from asp_dist.training.trainer import Trainer
+
+    reference, fast = vae_trainers(domain, base, (Trainer, OnePassVAETrainer), **changes)
+    assert isinstance(choose_trainer(fast.spec, domain, fast.agents, fast.paired, fast.unpaired, fast.weights),
                       OnePassVAETrainer)
-    for step in range(3):
-        for trainer in (reference, fast):
-            trainer.train_step()
-            if step == 0:  # the first update's gradients, before Adam has amplified any rounding
-                trainer.first_grads = [p.grad.clone() for p in trainer.agents.parameters()]
-        for g_ref, g_fast in zip(reference.first_grads, fast.first_grads):
-            torch.testing.assert_close(g_fast, g_ref, rtol=1e-4, atol=1e-6)
-    for (name, p_ref), p_fast in zip(reference.agents.named_parameters(), fast.agents.parameters()):
-        torch.testing.assert_close(p_fast, p_ref, rtol=1e-4, atol=1e-6, msg=name)
+    grads = []
+    for trainer in (reference, fast):
+        trainer.train_step()  # the first update's gradients, before Adam has amplified any rounding
+        grads.append([p.grad.clone() for p in trainer.agents.parameters()])
+    for g_ref, g_fast in zip(*grads):
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-4, atol=1e-6)
+    while reference.step < reference.spec.train_steps:  # the whole (tiny) training: 3 windows recorded
+        reference.train_step()
+        fast.train_step()
+    modules = [(reference.agents, fast.agents)]
+    if reference.adversaries is not None:
+        modules.append((reference.adversaries, fast.adversaries))
+    for ref_module, fast_module in modules:
+        for (name, p_ref), p_fast in zip(ref_module.named_parameters(), fast_module.parameters()):
+            torch.testing.assert_close(p_fast, p_ref, rtol=1e-4, atol=1e-5, msg=name)
+    ref_losses, fast_losses = reference.loss_columns(), fast.loss_columns()
+    assert ref_losses.keys() == fast_losses.keys()
+    for k, v in ref_losses.items():
+        assert (v is None) == (fast_losses[k] is None) and (v is None or fast_losses[k] == pytest.approx(v, rel=1e-4)), k
     assert torch.equal(reference.gen.get_state(), fast.gen.get_state()), "the draws differ"
-    assert reference.step == fast.step == 3
+
+
+def test_a_restored_vae_trainer_keeps_fused_adam(domain, base):
+    """A checkpoint from before the VAE used fused Adam (its param_groups say fused=None) must not
+    switch today's optimiser options off for the rest of the cell."""
+    from asp_dist.training.fast.vae import OnePassVAETrainer
+
+    (trainer,) = vae_trainers(domain, base, (OnePassVAETrainer,), method="asp")
+    trainer.train_step()
+    state = copy.deepcopy(trainer.state_dict())
+    for opt_state in [state["opt"], *state["adversaries"]["optims"].values()]:
+        for group in opt_state["param_groups"]:
+            group["fused"] = None  # as torch.optim.Adam() saved it before
+    trainer.load_state_dict(state)
+    assert all(g["fused"] for opt in [trainer.opt, *trainer.adversaries.optims.values()] for g in opt.param_groups)

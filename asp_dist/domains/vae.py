@@ -64,12 +64,13 @@ class VAE(nn.Module):
         Returns (loss, μ, the sampled z, info)."""
         mu, logvar = self.encode(x)
         z = sample_code(mu, logvar, gen)
-        return (*vae_loss_terms(x, mu, logvar, self.decoder(z), kl_weight, recon_loss, z),)
+        loss, info = vae_loss_terms(x, mu, logvar, self.decoder(z), kl_weight, recon_loss)
+        return loss, mu, z, info
 
     def code(self, x: torch.Tensor, what: str, gen: torch.Generator) -> torch.Tensor:
         """What an adversary sees of x: the mean encoding μ, or a sampled code z ~ q(z|x)."""
         mu, logvar = self.encode(x)
-        return mu if what == "mu" else mu + torch.exp(0.5 * logvar) * torch.randn(mu.shape, generator=gen)
+        return mu if what == "mu" else sample_code(mu, logvar, gen)
 
 
 def sample_code(mu: torch.Tensor, logvar: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
@@ -78,14 +79,14 @@ def sample_code(mu: torch.Tensor, logvar: torch.Tensor, gen: torch.Generator) ->
 
 
 def vae_loss_terms(x: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor, logits: torch.Tensor,
-                   kl_weight: float, recon_loss: str, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-    """VAE.vae_loss from its forward pass (decoder logits of the sampled z): (loss, μ, z, info)."""
+                   kl_weight: float, recon_loss: str) -> tuple[torch.Tensor, dict]:
+    """VAE.vae_loss from its forward pass (decoder logits of the sampled z): (loss, info)."""
     if recon_loss == "bce":
         recon = F.binary_cross_entropy_with_logits(logits, x, reduction="sum") / len(x)
     else:
         recon = (torch.sigmoid(logits) - x).pow(2).sum() / len(x)
     kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).mean()
-    return recon + kl_weight * kl, mu, z, {"recon": float(recon.detach()), "kl": float(kl.detach())}
+    return recon + kl_weight * kl, {"recon": float(recon.detach()), "kl": float(kl.detach())}
 
 
 def paired_error(spec: CellSpec, encodings: torch.Tensor, recons: torch.Tensor, paired: dict) -> torch.Tensor:
@@ -125,7 +126,7 @@ class VAEDomain(Domain):
         eval_episodes=10_000,
     )
     # One Adam kernel for all parameters: 0.48 ms per step of the 853k-parameter VAE against 2.6 ms
-    # for torch's default per-tensor loop (one thread; docs/performance.md), a quarter of an OSP update.
+    # for torch's default per-tensor loop (one thread; docs/decisions.md), a quarter of an OSP update.
     optimizer_options = {"fused": True}
     metrics = {
         "mixed": MetricInfo(False, "Eq. 1: mean of the two mixed MSEs (base enc→new dec, new enc→base dec)"),

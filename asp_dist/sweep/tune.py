@@ -79,6 +79,7 @@ from asp_dist.sweep.spaces import expand, space_file  # noqa: E402
 from asp_dist.training import packed  # noqa: E402
 from asp_dist.training.bases import BaseRejected  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402
+from asp_dist.training.packed.single import CellDiverged  # noqa: E402
 
 __all__ = ["run_sweep", "resume_sweep", "SweepResult", "train_cell"]
 
@@ -119,9 +120,10 @@ def train_cell(config: dict[str, Any]) -> None:
                        checkpoint_every_s=config["checkpoint_every_s"], curve=curve)
     except StorageError:
         raise  # object storage that did not answer: a crash, retried from the last checkpoint
-    except (SpecError, BaseRejected, MNISTError) as e:
-        # Deterministic (a bad spec, a base that never meets its bar, missing or corrupt data): a retry
-        # would fail the same way. Record it once and let the sweep go on; `resume` tries it again.
+    except (SpecError, BaseRejected, MNISTError, CellDiverged) as e:
+        # Deterministic (a bad spec, a base that never meets its bar, missing or corrupt data, a cell
+        # whose training diverged): a retry would fail the same way. Record it once and let the
+        # sweep go on; `resume` tries it again.
         store.record_failure(sweep_dir, cell_id, spec.domain, spec.method, f"{type(e).__name__}: {e}")
         tune.report({"cell_done": 0, "cell_failed": 1})
         return

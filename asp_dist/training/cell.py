@@ -8,8 +8,9 @@ Pure PyTorch, no Ray: the sweep service wraps this, tests call it directly. Phas
     eval   mixed teams (Eq. 1), both directions, self-play of the new agents and of the base
 
 The trainer is chosen per cell (choose_trainer): a particle cell whose knobs the packed particle
-trainer implements trains as a one-member pack of it (asp_dist.training.packed.single), every
-other cell on the reference Trainer (asp_dist.training.trainer: autograd). The full training
+trainer implements trains as a one-member pack of it (asp_dist.training.packed.single), a VAE cell
+on its one-pass trainer (asp_dist.training.fast), every other cell on the reference Trainer
+(asp_dist.training.trainer: autograd). The full training
 state can be checkpointed at any step and restored; a restored run gives the same row as an
 uninterrupted one (all randomness flows through saved generators).
 """

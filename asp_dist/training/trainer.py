@@ -58,6 +58,11 @@ class Trainer:
         # from its own generator, so probing never changes what is trained.
         self.probe: Callable[[int], dict[str, float]] | None = None
 
+    @classmethod
+    def supports(cls, spec: CellSpec) -> bool:
+        """Whether this trainer implements every knob value of `spec` (the reference does)."""
+        return True
+
     def make_optimizer(self, params, lr: float):
         """The optimiser of the new agents and of each discriminator."""
         return torch.optim.Adam(params, lr=lr, **self.domain.optimizer_options)
@@ -163,6 +168,11 @@ class Trainer:
         self.opt.load_state_dict(state["opt"])
         if self.adversaries is not None:
             self.adversaries.load_full_state(state["adversaries"])
+        # A saved optimiser state carries its param_groups' options; a state saved by older code
+        # (the VAE before fused Adam) would switch today's options off for the rest of the cell.
+        for opt in [self.opt, *(self.adversaries.optims.values() if self.adversaries is not None else ())]:
+            for group in opt.param_groups:
+                group.update(self.domain.optimizer_options)
         self.gen.set_state(state["gen"])
         self.sp_state = {k: v.clone() for k, v in state["sp_state"].items()}
         self.loss_sums = defaultdict(float, state["loss_sums"])

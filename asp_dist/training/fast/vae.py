@@ -8,7 +8,8 @@ time (torch.profiler, docs/performance.md). This trainer stacks the self-play ro
 into one batch per network, so each weight is used once: the same loss terms, the same random
 draws in the same order, one matmul per layer and no accumulation. Rows are computed by the same
 kernels; the weight gradients sum the rows in one matmul instead of two, so results equal the
-reference's up to float rounding (tests/test_vae.py checks gradients and whole cells).
+reference's up to float rounding (tests/test_vae.py checks gradients, weights and loss columns
+over a whole tiny training, and the draws for equality).
 
 Cells without both self-play and paired loss (PC, or 0 paired) have nothing to merge and run the
 reference update unchanged.
@@ -40,6 +41,6 @@ class OnePassVAETrainer(Trainer):
         mu, logvar = mu_all[:n], logvar_all[:n]
         z = sample_code(mu, logvar, self.gen)
         logits_all = vae.decoder(torch.cat([z, paired["encoding"]]))
-        sp_out = self.domain.self_play_out(
-            spec, *vae_loss_terms(x, mu, logvar, logits_all[:n], spec.vae_kl_weight, spec.vae_recon_loss, z))
+        loss, info = vae_loss_terms(x, mu, logvar, logits_all[:n], spec.vae_kl_weight, spec.vae_recon_loss)
+        sp_out = self.domain.self_play_out(spec, loss, mu, z, info)
         return sp_out, paired_error(spec, mu_all[n:], torch.sigmoid(logits_all[n:]), paired)

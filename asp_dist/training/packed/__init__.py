@@ -27,8 +27,8 @@ of this package, never a domain's module directly.
 
 A module may also bind ``single_cell = partial(single.PackOfOne, MyTrainer)``: then run_cell trains
 each cell of the domain that `supports` accepts as a one-member pack (single_cell_trainer below,
-asked by asp_dist.training.cell.choose_trainer); the reference Trainer runs the domain's other cells
-and every cell of a domain without it. The particle world binds it (its packed trainer, with one
+asked by asp_dist.training.cell.choose_trainer); the domain's other cells, and every cell of a domain
+without it, run on its fast trainer where asp_dist.training.fast has one, else the reference Trainer. The particle world binds it (its packed trainer, with one
 member, is faster than the hand-derived single-cell kernel it replaced: docs/decisions.md); the lever
 world does not (its single cells run on the reference Trainer).
 """

@@ -27,19 +27,24 @@ import torch
 from asp_dist.domains.contract import Tensors
 from asp_dist.spec import CellSpec
 
-ENGINE = "pack-of-one"  # the `engine` of these trainers' checkpoints (the reference Trainer's: "autograd")
+ENGINE = "pack-of-one"  # prefix of these trainers' checkpoint `engine` (the reference Trainer's: "autograd")
+
+
+class CellDiverged(RuntimeError):
+    """A cell trained alone whose gradient or recorded loss became non-finite. Deterministic: the
+    sweep records it as the cell's failure once instead of retrying it (asp_dist.sweep.tune)."""
 
 
 class PackOfOne:
     """`trainer_class` (a domain's packed trainer) with one member: `spec`, its P, U and fresh agents."""
-
-    engine = ENGINE
 
     def __init__(self, trainer_class: type, spec: CellSpec, agents: torch.nn.Module, paired: Tensors,
                  unpaired: Tensors):
         self.spec, self.agents = spec, agents
         self.pack = trainer_class([spec], [paired], [unpaired], [agents])
         self.member = self.pack.members[0]
+        # names the checkpoint's format: the packed trainer whose state it is
+        self.engine = f"{ENGINE}/{trainer_class.__name__}"
 
     @property
     def step(self) -> int:
@@ -60,7 +65,7 @@ class PackOfOne:
     def train_step(self) -> None:
         self.pack.train_step()
         if self.member.failed:
-            raise RuntimeError(f"cell {self.spec.cell_id}: {self.member.error}")
+            raise CellDiverged(f"cell {self.spec.cell_id}: {self.member.error.replace('; member frozen', '')}")
 
     def loss_columns(self) -> dict[str, float | None]:
         return self.pack.loss_columns(0)
