@@ -441,7 +441,11 @@ def plot_curves(result: StatsResult, curves: pd.DataFrame, domain: str, out_dir:
     if c.empty:
         return [], []
     directions = _metric_directions(rows)
-    wanted = [(cond, series) for cond in sorted(c["condition"].unique(), key=condition_key)
+    # Conditions with the most paired counts first (a paired-count grid before a knob grid's single
+    # count), so that the figures kept under the cap are the ones with panels to compare.
+    n_paired = c.groupby("condition")["paired"].nunique()
+    conditions = sorted(c["condition"].unique(), key=lambda cond: (-n_paired[cond], condition_key(cond)))
+    wanted = [(cond, series) for cond in conditions
               for series in CURVE_SERIES if series in c and c.loc[c["condition"] == cond, series].notna().any()]
     notes = []
     if len(wanted) > MAX_CURVE_FIGURES_PER_DOMAIN:
