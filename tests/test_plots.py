@@ -177,3 +177,17 @@ def test_curve_figures_from_real_cells(tmp_path, tiny):
     run_stats_job([str(sweep)], cfg=StatsConfig(n_boot=200), log=lambda m: None)
     drawn = {p.stem for p in (sweep / "figures").glob("*.png")}
     assert {"signaling_curve_d_fake", "signaling_curve_probe_mixed"} <= drawn, drawn
+
+
+def test_curve_figures_under_the_cap_start_with_the_condition_of_most_paired_counts(tmp_path):
+    """A paired-count grid beside a knob grid at one count (the VAE's two grids): the figures kept
+    under the cap are first those of the condition with panels to compare."""
+    from asp_dist.analysis.plots import plot_curves
+
+    rng = np.random.default_rng(3)
+    rows = (make_rows(paired=(4,), trials=range(2), knobs={"signaling_skew": [0.0, 1.0, 3.0]})
+            + make_rows(paired=(0, 2, 4), trials=range(2), knobs={"signaling_skew": [2.0]}))
+    curves = pd.DataFrame([{**{k: r[k] for k in ("cell_id", "domain", "method", "paired", "trial")}, **p}
+                           for r in rows for p in _synthetic_curve(r, rng)])
+    figures, _ = plot_curves(compute(pd.DataFrame(rows), StatsConfig(n_boot=200)), curves, "signaling", tmp_path)
+    assert figures[0].name == "signaling_curve_d_fake_signaling_skew_2"
