@@ -56,6 +56,14 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, metric: str, keys: list[str], n_bo
     return pd.DataFrame(out)
 
 
+def markdown(table: pd.DataFrame) -> str:
+    """A markdown table (pandas' to_markdown needs the optional `tabulate`)."""
+    cell = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in table.itertuples(index=False)]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("a")
@@ -74,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     trials = sorted(set(a["trial"]) & set(b["trial"]))
     print(f"{args.domain}, {args.metric}: A = {args.a} ({len(a)} rows), B = {args.b} ({len(b)} rows); "
           f"{len(trials)} trials in both; bootstrap {args.bootstrap}, seed {args.seed}")
-    print(table.to_markdown(index=False, floatfmt=".4g") if args.markdown else table.to_string(index=False))
+    print(markdown(table) if args.markdown else table.to_string(index=False))
     print(f"groups: {len(table)}; intervals overlap in {int(table['overlap'].sum())}; A's median inside B's interval "
           f"in {int(table['a_in_b'].sum())}, B's inside A's in {int(table['b_in_a'].sum())}; interval of the median "
           f"per-trial difference contains 0 in {int(table['diff_ci_has_0'].sum())}")
