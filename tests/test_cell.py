@@ -5,6 +5,7 @@ import json
 
 import pytest
 import torch
+from checkpoints import checkpoint_sink
 
 from asp_dist.spec import FIELD_NAMES
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
@@ -41,18 +42,6 @@ def test_base_for_other_settings_is_refused(tiny_signaling):
     base = train_accepted_base(tiny_signaling.replace(trial=5))
     with pytest.raises(ValueError, match="other settings"):
         run_cell(tiny_signaling, base=base)
-
-
-def checkpoint_sink():
-    """A list of saved checkpoints and the callback that fills it, through bytes as on disk."""
-    saved: list[bytes] = []
-
-    def keep(state):
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        saved.append(buf.getvalue())
-
-    return saved, keep
 
 
 @pytest.mark.parametrize("method", ["osp", "asp"])

@@ -11,6 +11,7 @@ import json
 import pytest
 import torch
 from budgets import tiny_spec
+from checkpoints import checkpoint_sink
 
 from asp_dist.domains import get_domain
 from asp_dist.domains.levers import (
@@ -176,12 +177,7 @@ def test_whole_cell_is_deterministic(base):
 
 def test_restored_cell_equals_the_uninterrupted_one(base):
     spec = tiny(method="asp", paired=2)
-    saved = []
-
-    def keep(state):  # through bytes, as a checkpoint on disk would be
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        saved.append(buf.getvalue())
+    saved, keep = checkpoint_sink()
 
     full = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=7)
     resumed = run_cell(spec, base=base, restore=torch.load(io.BytesIO(saved[0]), weights_only=False))

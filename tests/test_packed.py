@@ -13,6 +13,7 @@ import json
 import pytest
 import torch
 from budgets import TINY, tiny_spec
+from checkpoints import checkpoint_sink
 from packed_cases import DOMAINS, case_for, disc_params, flat_grads, flat_params
 
 from asp_dist.domains import get_domain
@@ -103,12 +104,7 @@ def tiny_run(request):
     for trial in (0, 1):
         s = tiny_spec(domain, trial=trial).resolved()
         bases[s.base_key] = train_accepted_base(s)
-    states: list[bytes] = []
-
-    def keep(state):
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        states.append(buf.getvalue())
+    states, keep = checkpoint_sink()
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(packed_module(domain), "CHUNK", TINY_CHUNK)

@@ -12,6 +12,7 @@ import io
 import pytest
 import torch
 from budgets import tiny_spec
+from checkpoints import checkpoint_sink
 from packed_cases import PARTICLES, flat_grads, flat_params
 
 from asp_dist.domains import get_domain
@@ -129,12 +130,7 @@ def test_a_checkpoint_of_another_engine_starts_the_cell_over():
     uninterrupted run."""
     spec = tiny_spec("particles", method="osp", paired=2)
     base = train_accepted_base(spec)
-    saved = []
-
-    def keep(state):  # through bytes, as a checkpoint on disk would be
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        saved.append(buf.getvalue())
+    saved, keep = checkpoint_sink()
 
     row = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=15)
     states = [torch.load(io.BytesIO(b), weights_only=False) for b in saved]
