@@ -3,10 +3,12 @@
 In an OSP or ASP update the reference path runs the new VAE's encoder twice (the self-play batch,
 then P's images) and its decoder twice (the sampled codes, then P's encodings). Every weight is
 then used by two graphs, and autograd accumulates each weight's two gradients with an extra
-tensor add: 13 adds of up to 400k floats per update, memory-bound, about a third of an update's
-time (torch.profiler, docs/performance.md). This trainer stacks the self-play rows and P's rows
-into one batch per network, so each weight is used once: the same loss terms, the same random
-draws in the same order, one matmul per layer and no accumulation. Rows are computed by the same
+tensor add: 13 adds of up to 400k floats per update, memory-bound (a third of an update's time in a
+profile on the loaded machine: docs/decisions.md, "VAE: fused Adam and one pass per network"). This
+trainer stacks the self-play rows and P's rows into one batch per network, so each weight is used
+once: the same loss terms, the same random draws in the same order, one matmul per layer and no
+accumulation. Idle, an OSP update takes 11 % and an ASP update 9 % less CPU than the reference's
+(bench/bench_packing.py, docs/performance.md). Rows are computed by the same
 kernels; the weight gradients sum the rows in one matmul instead of two, so results equal the
 reference's up to float rounding (tests/test_vae.py checks gradients, weights and loss columns
 over a whole tiny training, and the draws for equality).
