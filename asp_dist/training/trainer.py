@@ -27,8 +27,9 @@ class Trainer:
     """The training loop shared by every domain and method (the reference path: autograd and
     torch.optim.Adam). It trains every cell that no faster engine implements: run_cell's
     choose_trainer (asp_dist.training.cell) trains a particle cell as a one-member pack of the
-    hand-derived packed trainer (asp_dist.training.packed.single) where that implements its knobs,
-    and the packed trainers are tested against this one."""
+    hand-derived packed trainer (asp_dist.training.packed.single) where that implements its knobs, and
+    a VAE cell on a subclass that computes the same update in one pass (asp_dist.training.fast); the
+    packed and fast trainers are tested against this one."""
 
     engine = "autograd"  # names the format of state_dict() in run_cell's checkpoints
 

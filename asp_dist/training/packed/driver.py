@@ -199,7 +199,7 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
 
     for k, (i, member) in enumerate(zip(order, trainer.members)):
         if member.failed:
-            results[i].error = member.error
+            results[i].error = f"{member.error}; member frozen"  # the pack went on without it
             continue
         spec, base, timer = specs[i], bases[specs[i].base_key], timers[i]
         timer.seconds["time_train_wall_s"] += share_wall

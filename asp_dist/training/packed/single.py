@@ -3,7 +3,7 @@
 A domain whose packed trainer is also its fast single-cell path binds this to its trainer:
 ``single_cell = partial(single.PackOfOne, MyTrainer)`` (asp_dist.training.packed.PACKED; today the
 particle world). asp_dist.training.cell.choose_trainer then trains every cell the trainer supports
-as a pack of one, and the reference Trainer (autograd) runs the others. The update is the packed
+as a pack of one; the others run on the domain's fast trainer or the reference Trainer. The update is the packed
 trainer's, with the member's own generator drawn in the single-cell order; its arithmetic is that
 of a pack of one (a pack of other shapes rounds a few kernels differently: rows are reproducible
 for a fixed packing, docs/sweeps.md).
@@ -14,8 +14,9 @@ bit for bit) and `engine`, which names the checkpoint's format. The agents given
 into the pack's parameter buffer, so the caller's module holds the trained weights.
 
 A pack freezes a member whose gradient or recorded loss is not finite and carries on; a single cell
-has nothing to carry on with, so train_step raises instead (RuntimeError, as the autograd path's
-sampling from a non-finite policy does): the cell fails rather than report frozen weights.
+has nothing to carry on with, so train_step raises CellDiverged instead (a RuntimeError, as the
+autograd path's sampling from a non-finite policy raises): the cell fails rather than report
+frozen weights, and the sweep records that once.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ class PackOfOne:
     def train_step(self) -> None:
         self.pack.train_step()
         if self.member.failed:
-            raise CellDiverged(f"cell {self.spec.cell_id}: {self.member.error.replace('; member frozen', '')}")
+            raise CellDiverged(f"cell {self.spec.cell_id}: {self.member.error}")
 
     def loss_columns(self) -> dict[str, float | None]:
         return self.pack.loss_columns(0)

@@ -165,7 +165,7 @@ class PackRecords:
         for i in rows:
             self.active[i] = False
             self.members[i].failed_step = self.step
-            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}; member frozen"
+            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}"
         self._freeze_params(rows)
 
     def _freeze_params(self, rows: list[int]) -> None:
