@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from asp_dist.analysis.rank_tests import bootstrap_median_ci
 from asp_dist.results.store import read_rows
 
 
@@ -26,14 +27,8 @@ def load(path: str) -> pd.DataFrame:
     return pd.read_parquet(path) if path.endswith(".parquet") else read_rows(Path(path))
 
 
-def boot_median_ci(x: np.ndarray, rng: np.random.Generator, n: int) -> tuple[float, float]:
-    idx = rng.integers(0, len(x), size=(n, len(x)))
-    meds = np.median(x[idx], axis=1)
-    return float(np.percentile(meds, 2.5)), float(np.percentile(meds, 97.5))
-
-
 def compare(a: pd.DataFrame, b: pd.DataFrame, metric: str, keys: list[str], n_boot: int, seed: int) -> pd.DataFrame:
-    rng = np.random.default_rng(seed)
+    ci = lambda x: bootstrap_median_ci(x, n_boot=n_boot, seed=seed)  # noqa: E731
     trials = sorted(set(a["trial"]) & set(b["trial"]))
     a, b = a[a["trial"].isin(trials)], b[b["trial"].isin(trials)]
     out = []
@@ -42,10 +37,10 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, metric: str, keys: list[str], n_bo
         if gb is None:
             continue
         xa, xb = ga[metric].to_numpy(float), gb[metric].to_numpy(float)
-        lo_a, hi_a = boot_median_ci(xa, rng, n_boot)
-        lo_b, hi_b = boot_median_ci(xb, rng, n_boot)
+        lo_a, hi_a = ci(xa)
+        lo_b, hi_b = ci(xb)
         paired = ga.set_index("trial")[metric].sub(gb.reset_index().set_index("trial")[metric]).dropna().to_numpy()
-        lo_d, hi_d = boot_median_ci(paired, rng, n_boot) if len(paired) else (np.nan, np.nan)
+        lo_d, hi_d = ci(paired)
         med_a, med_b = float(np.median(xa)), float(np.median(xb))
         out.append({**dict(zip(keys, key if isinstance(key, tuple) else (key,))), "n_a": len(xa), "n_b": len(xb),
                     "median_a": med_a, "ci_a": f"{lo_a:.4g}–{hi_a:.4g}", "median_b": med_b, "ci_b": f"{lo_b:.4g}–{hi_b:.4g}",
