@@ -82,8 +82,7 @@ def run_cell(spec: CellSpec, *, base: BaseModel | None = None, progress: Progres
         restore = None  # its state would not load into this trainer: start over
     if restore is not None:
         trainer.load_state_dict(restore["trainer"])
-        for name, seconds in restore["timings"].items():
-            timer.seconds[name] += seconds
+        timer.carry(restore["timings"])
     resumed_from = trainer.step if restore is not None else None
 
     def save_state() -> None:

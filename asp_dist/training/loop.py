@@ -22,8 +22,13 @@ from asp_dist.training.row import PHASES
 
 
 class PhaseTimer:
-    def __init__(self, carried: dict[str, float] | None = None):
-        self.seconds: dict[str, float] = defaultdict(float, carried or {})
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def carry(self, seconds: dict[str, float]) -> None:
+        """Add the phase seconds of a checkpoint's earlier run (its "timings")."""
+        for name, value in seconds.items():
+            self.seconds[name] += value
 
     @contextmanager
     def phase(self, name: str) -> Iterator[None]:

@@ -177,8 +177,7 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
         trainer.load_state_dict(restore["trainer"])
         resumed_from = trainer.step
         for i, carried in zip(live, restore["timings"]):
-            for name, seconds in carried.items():
-                timers[i].seconds[name] += seconds
+            timers[i].carry(carried)
 
     def save_state() -> None:
         share = {"time_train_wall_s": (time.perf_counter() - wall) / len(live),
