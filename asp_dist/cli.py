@@ -174,8 +174,9 @@ def parse_probs(text: str, actions: int) -> list[float]:
 
 def cmd_fields(args: argparse.Namespace) -> int:
     from asp_dist.domains import DOMAINS, get_domain
+    from asp_dist.spec import COMMON_DEFAULTS
 
-    defaults = get_domain(args.domain).defaults if args.domain is not None else {}
+    defaults = {**COMMON_DEFAULTS, **(get_domain(args.domain).defaults if args.domain is not None else {})}
     domain_prefixes = tuple(f"{name}_" for name in DOMAINS)  # a domain's own knobs are named <domain>_*
     for name in FIELD_NAMES:
         if args.domain is not None and name.startswith(domain_prefixes) and not name.startswith(f"{args.domain}_"):

@@ -53,9 +53,10 @@ class CellSpec:
     adversary_loss: str = knob("neg_bce", "Model's adversarial term: neg_bce (paper: -BCE) | non_saturating (-log D(fake)).")
     unpaired_size: int | None = knob(None, "|U|: number of unpaired base outputs per convention channel.")
     unpaired_batch: int | None = knob(None, "Unpaired samples shown to each discriminator per update (default: batch_size).")
-    lambda_unpaired_schedule: str = knob("constant", "λ1 over training: constant | warmup (0 → λ1 over the first "
-                                                     "lambda_schedule_frac of updates) | anneal (λ1 → 0 over that fraction).")
-    lambda_schedule_frac: float = knob(0.5, "Fraction of the updates over which a λ1 warm-up or anneal runs.")
+    lambda_unpaired_schedule: str | None = knob(None, "λ1 over training: constant | warmup (0 → λ1 over the first "
+                                                      "lambda_schedule_frac of updates) | anneal (λ1 → 0 over that "
+                                                      "fraction). ASP only; PC and OSP resolve it to constant.")
+    lambda_schedule_frac: float | None = knob(None, "Fraction of the updates over which a λ1 warm-up or anneal runs.")
     disc_steps: int = knob(1, "Discriminator updates per model update (each on a fresh batch of U, the same fakes).")
 
     # --- optimisation of the new agents ---------------------------------------------------
@@ -68,9 +69,10 @@ class CellSpec:
 
     # --- base model and evaluation ----------------------------------------------------------
     base_train_steps: int | None = knob(None, "Training updates of the base model.")
-    base_max_attempts: int = knob(5, "Base retrained with the next seed at most this many times if it misses the bar.")
-    base_steps_growth: float = knob(1.0, "Attempt k (from 0) of a base trains base_train_steps · growth^k updates: "
-                                         "retries escalate the budget instead of repeating it.")
+    base_max_attempts: int | None = knob(None, "Base retrained with the next seed at most this many times if it misses "
+                                               "the bar.")
+    base_steps_growth: float | None = knob(None, "Attempt k (from 0) of a base trains base_train_steps · growth^k "
+                                                 "updates: retries escalate the budget instead of repeating it.")
     eval_episodes: int | None = knob(None, "Evaluation size per mixed-team composition (episodes, images or games).")
     record_figure_data: bool = knob(False, "Store figure arrays (latent codes, communication vectors) in the row.")
 
@@ -136,11 +138,16 @@ class CellSpec:
         """Fill every None knob with the domain's default and validate the result."""
         self.validate_identity()
         domain = get_domain(self.domain)
-        filled = {k: v for k, v in domain.defaults.items() if getattr(self, k) is None}
+        defaults = {**COMMON_DEFAULTS, **domain.defaults}
+        filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         spec = dataclasses.replace(self, **filled)
-        if spec.method != "asp" and spec.lambda_unpaired not in (None, 0, 0.0):
-            # λ1 has no meaning without an adversary; keep it in the row as 0 so rows stay comparable.
-            spec = dataclasses.replace(spec, lambda_unpaired=0.0)
+        if spec.method != "asp":
+            # λ1 and its schedule have no meaning without an adversary; keep them in the row at their
+            # neutral values (0, constant) so that PC and OSP rows stay comparable across settings.
+            spec = dataclasses.replace(spec, lambda_unpaired_schedule="constant",
+                                       lambda_schedule_frac=HASH_NEUTRAL["lambda_schedule_frac"])
+            if spec.lambda_unpaired not in (None, 0, 0.0):
+                spec = dataclasses.replace(spec, lambda_unpaired=0.0)
         if spec.unpaired_batch is None:
             spec = dataclasses.replace(spec, unpaired_batch=spec.batch_size)
         spec.validate_resolved()
@@ -178,7 +185,7 @@ class CellSpec:
         if self.method not in METHODS:
             raise SpecError(f"unknown method {_short_repr(self.method)}; choose one of {', '.join(METHODS)}")
         for name, allowed in CHOICES.items():
-            if getattr(self, name) not in allowed:
+            if getattr(self, name) is not None and getattr(self, name) not in allowed:
                 raise SpecError(f"{name} must be one of {', '.join(allowed)}, got {_short_repr(getattr(self, name))}")
         for name in ("paired", "trial", "root_seed"):
             value = getattr(self, name)
@@ -252,6 +259,13 @@ class CellSpec:
             raise ValueError(f"unknown seed purpose {purpose!r}")
         return int(stable_hash({"purpose": purpose, "material": material})[:12], 16)
 
+
+# Knobs every domain uses, with the value a domain gets unless its `defaults` say otherwise
+# (particles: robust bases and a λ1 warm-up, chosen by the reproduction study; docs/decisions.md).
+COMMON_DEFAULTS: dict[str, Any] = {
+    "lambda_unpaired_schedule": "constant", "lambda_schedule_frac": 0.5,
+    "base_max_attempts": 5, "base_steps_growth": 1.0,
+}
 
 # Knobs added after rows were first recorded, with the value that reproduces the behaviour
 # before them. At that value they are left out of cell ids, seeds and base keys (identity_dict).

@@ -74,6 +74,9 @@ def test_fields_lists_every_knob_or_one_domain_s(capsys):
         own = {f for f in listed if f.startswith(f"{domain}_")}
         others = {f for f in listed if f.startswith(tuple(f"{d}_" for d in DOMAINS if d != domain))}
         assert "lambda_unpaired" in shown and own <= shown and not shown & others
+    assert main(["fields", "--domain", "particles"]) == 0  # a domain's own value of a common knob
+    shown = dict(line.split()[:2] for line in capsys.readouterr().out.splitlines())
+    assert (shown["lambda_unpaired_schedule"], shown["base_max_attempts"]) == ("warmup", "10")
 
 
 def test_argparse_errors_are_one_line_too(capsys):

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import copy
+import json
+from pathlib import Path
 
 import pytest
 import torch
 
-from asp_dist.domains import get_domain
+from asp_dist.domains import DOMAINS, get_domain
 from asp_dist.errors import SpecError
-from asp_dist.spec import HASH_NEUTRAL, CellSpec
+from asp_dist.spec import COMMON_DEFAULTS, HASH_NEUTRAL, CellSpec
+from asp_dist.sweep.spaces import expand, grid_hash
 from asp_dist.training import bases
 from asp_dist.training.cell import run_cell
 from asp_dist.training.methods import lambda_factor
@@ -18,7 +21,8 @@ from asp_dist.training.row import comparable
 
 @pytest.mark.parametrize("knob", sorted(HASH_NEUTRAL))
 def test_a_knob_at_its_neutral_value_keeps_every_id(knob):
-    spec = CellSpec(domain="particles", trial=7).resolved()
+    # Particles default to a λ1 warm-up and a growing base budget; start from the neutral values.
+    spec = CellSpec(domain="particles", trial=7, lambda_unpaired_schedule="constant", base_steps_growth=1.0).resolved()
     explicit = spec.replace(**{knob: HASH_NEUTRAL[knob]})
     assert (explicit.cell_id, explicit.base_key, explicit.seed_for("train")) == \
         (spec.cell_id, spec.base_key, spec.seed_for("train"))
@@ -33,6 +37,41 @@ def test_new_agent_knobs_share_the_base_and_base_knobs_do_not():
     p = CellSpec(domain="particles", trial=7).resolved()
     assert p.replace(particles_replay_size=1000, particles_paired_listener=False).base_key == p.base_key
     assert p.replace(particles_replay_size=1000).cell_id != p.cell_id
+
+
+@pytest.mark.parametrize("domain", sorted(DOMAINS))
+def test_domain_defaults_of_the_common_knobs(domain):
+    """Particles and the VAE take the reproduction study's settings (docs/decisions.md); the rest keep
+    COMMON_DEFAULTS; PC and OSP never carry a λ1 schedule (they have no adversary)."""
+    chosen = {"particles": dict(lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5,
+                                base_steps_growth=1.5, base_max_attempts=10)}
+    asp = CellSpec(domain=domain, method="asp").resolved()
+    expected = {**COMMON_DEFAULTS, **chosen.get(domain, {})}
+    assert {k: getattr(asp, k) for k in expected} == expected
+    if domain == "vae":
+        assert asp.lambda_unpaired == 10.0
+    for method in ("pc", "osp"):
+        other = CellSpec(domain=domain, method=method, lambda_unpaired_schedule="anneal",
+                         lambda_schedule_frac=0.3).resolved()
+        assert (other.lambda_unpaired_schedule, other.lambda_schedule_frac, other.lambda_unpaired or 0.0) == \
+            ("constant", 0.5, 0.0)
+        assert other.cell_id == CellSpec(domain=domain, method=method).cell_id
+    explicit = CellSpec(domain=domain, method="asp", lambda_unpaired_schedule="anneal", base_max_attempts=3).resolved()
+    assert (explicit.lambda_unpaired_schedule, explicit.base_max_attempts) == ("anneal", 3), "a set knob beats the default"
+
+
+EXAMPLE_MANIFESTS = sorted((Path(__file__).resolve().parents[1] / "results" / "examples").glob("*/manifest.json"))
+
+
+@pytest.mark.parametrize("manifest", EXAMPLE_MANIFESTS, ids=lambda p: p.parent.name)
+def test_spaces_that_ran_still_resolve_to_their_cells(manifest):
+    """A changed default must not change what a committed sweep's space means: its space file still
+    expands to the recorded cells, and every recorded spec still resolves to its recorded id."""
+    recorded = json.loads(manifest.read_text())
+    specs = expand(recorded["space"])
+    assert sorted(s.cell_id for s in specs) == sorted(recorded["cells"])
+    assert grid_hash(specs) == recorded["grid_hash"]
+    assert [CellSpec.from_dict(s).cell_id for s in recorded["specs"]] == recorded["cells"]
 
 
 @pytest.mark.parametrize("changes, needle", [

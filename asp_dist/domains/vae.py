@@ -121,7 +121,9 @@ class VAEDomain(Domain):
         vae_train_images=0,
         base_train_steps=5000,
         train_steps=1000, batch_size=64, lr=1e-3,
-        lambda_paired=1.0, lambda_unpaired=1.0, unpaired_size=2048,
+        # λ1 = 10: at 1 the discriminator wins outright and the saturating -BCE gives the model ~1 % of
+        # its gradient (reproduction study: docs/reproduction.md, docs/decisions.md).
+        lambda_paired=1.0, lambda_unpaired=10.0, unpaired_size=2048,
         disc_hidden=64, disc_layers=2, disc_lr=1e-3,
         eval_episodes=10_000,
     )
