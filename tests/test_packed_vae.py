@@ -140,6 +140,25 @@ def test_a_member_does_not_depend_on_its_pack_mates():
         assert losses == pytest.approx(alone_losses, rel=LOSS_REL)
 
 
+def test_a_pc_member_is_not_harmed_by_the_self_play_rows_it_rides_along_in():
+    """A PC member's self-play rows are computed (weight 0) beside members with self-play; a log σ²
+    whose exp overflows there (exp(200) is inf in float32) must not reach its gradient as inf·0."""
+    specs = [VAE.spec(method="osp", paired=2, trial=0), VAE.spec(method="pc", paired=3, trial=1)]
+    data = [VAE.member_data(s) for s in specs]
+    agents = [DOMAIN.new_agents(s, s.seed_for("init")) for s in specs]
+    single_agents = DOMAIN.new_agents(specs[1], specs[1].seed_for("init"))
+    for vae in (agents[1], single_agents):
+        with torch.no_grad():
+            vae.encoder[2].bias[vae.latent_dim:] = 400.0  # log σ² = 400 on every input
+    pack = PackedVAETrainer(specs, [d[0] for d in data], [d[1] for d in data], agents)
+    single = OnePassVAETrainer(specs[1], DOMAIN, single_agents, *data[1], method_weights(specs[1]))
+    for _ in range(3):
+        pack.train_step()
+        single.train_step()
+    assert not any(m.failed for m in pack.members)
+    assert rel_diff(flat_params(pack.members[1].agents), flat_params(single.agents)) <= PARAM_REL_FIRST
+
+
 def test_what_can_share_a_pack():
     spec = VAE.spec
     assert supports(tiny_spec("vae")) and supports(spec(method="asp", paired=2))

@@ -290,6 +290,7 @@ class PackedVAETrainer(PackRecords):
             self.lam32[:S] = self.lam_now[:S].float()
 
     # ---- one update of every member -------------------------------------------------------------
+    @torch.enable_grad()
     def train_step(self) -> None:
         if self.step >= self.train_steps:
             raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
