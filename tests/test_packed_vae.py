@@ -140,6 +140,23 @@ def test_a_member_does_not_depend_on_its_pack_mates():
         assert losses == pytest.approx(alone_losses, rel=LOSS_REL)
 
 
+def test_mates_with_other_knob_values_change_nothing_at_one_shape():
+    """A mate whose reconstruction loss, adversary input and adversarial loss differ from the member's
+    makes the pack compute both ways and pick per member (torch.where): the member's arithmetic is
+    still bit for bit what it is beside a mate of its own knob values."""
+    me = VAE.spec(method="asp", paired=3, trial=0, train_steps=30)
+    runs = []
+    for mate in (VAE.spec(method="asp", paired=3, trial=1, train_steps=30),
+                 VAE.spec(method="asp", paired=2, trial=2, vae_recon_loss="mse", vae_adversary_input="z",
+                          adversary_loss="non_saturating", unpaired_size=50, train_steps=30)):
+        pack = VAE.make_pack([me, mate])
+        for _ in range(30):
+            pack.train_step()
+        runs.append((flat_params(pack.members[0].agents), disc_params(pack.members[0]), pack.loss_columns(0)))
+    (p1, d1, l1), (p2, d2, l2) = runs
+    assert torch.equal(p1, p2) and torch.equal(d1, d2) and l1 == l2
+
+
 def test_a_pc_member_is_not_harmed_by_the_self_play_rows_it_rides_along_in():
     """A PC member's self-play rows are computed (weight 0) beside members with self-play; a log σ²
     whose exp overflows there (exp(200) is inf in float32) must not reach its gradient as inf·0."""
