@@ -45,7 +45,8 @@ median of three measurements: before and after the cells' updates, after the bas
 cell's trainer has run (MNIST loaded, before the other trainers and the base exist). Where run_cell's
 trainer is a fast one, the reference update (training.trainer.Trainer) is timed beside it. Stacked
 VAEs: the self-play update of K = 1, 4, 8, 21 VAEs through batched matmuls (stacked_vae_cpu_ms),
-the measurement behind the VAE having no packed trainer (docs/decisions.md).
+the prototype that preceded the VAE's packed trainer (docs/decisions.md, "Packed VAE trainer"); that
+trainer itself is benchmarked with the other packed domains.
 
 Load on a shared machine inflates every figure: the load averages are printed and stored.
 bench/bench_vae.py (whole VAE cells, other latent sizes) and bench/bench_packed_allocator.py stay
@@ -75,7 +76,7 @@ from asp_dist.sweep.packing import DEFAULT_PACK_SIZE  # noqa: E402
 from asp_dist.sweep.spaces import expand  # noqa: E402
 from asp_dist.training import cell  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
-from asp_dist.training.packed import PACKED, packed_module  # noqa: E402
+from asp_dist.training.packed import PACKED, pack_key, packed_module  # noqa: E402
 from asp_dist.training.packed import supports as packable  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
@@ -84,7 +85,7 @@ METHODS = ("pc", "osp", "asp")
 # timing block (default DEFAULT_UPDATES; about 2-3 s of single-path work per block at K = 21).
 GRID_SPACE: dict[str, str] = {}
 # Multiples of the packed trainers' CHUNK (updates whose random draws are made ahead: 128 particles,
-# 32 levers), so that every block holds the same number of refills.
+# 32 levers and VAE), so that every block holds the same number of refills.
 UPDATES: dict[str, int] = {"particles": 256, "levers": 64}
 DEFAULT_UPDATES = 64
 VAE_UPDATES = 100
@@ -97,8 +98,11 @@ TARGET_SPEEDUP, TARGET_MATMUL = 4.0, 0.80  # issue 13
 
 @functools.lru_cache(maxsize=None)
 def _grid(domain: str) -> tuple[CellSpec, ...]:
+    """The packable cells of the domain's grid that share the first one's pack_key (every cell of the
+    particle and lever grids; the VAE grid's latent size 32, its other latent sizes being other packs)."""
     cells = [s for s in expand(GRID_SPACE.get(domain, f"paper-{domain}")) if s.domain == domain and packable(s)]
-    return tuple(sorted(cells, key=lambda s: (s.trial, s.paired, METHODS.index(s.method))))
+    cells = sorted(cells, key=lambda s: (s.trial, s.paired, METHODS.index(s.method)))
+    return tuple(s for s in cells if pack_key(s) == pack_key(cells[0]))
 
 
 def grid_cells(domain: str, k: int, method: str | None = None) -> list[CellSpec]:

@@ -194,7 +194,46 @@ LEVERS = PackCase(
                              t.sp_state["levers"], t.sp_state["reward"]] if t.sp_state else [],
 )
 
-CASES = {case.domain: case for case in (PARTICLES, LEVERS)}
+VAE = PackCase(
+    "vae",
+    # a 64-unit VAE on 300 images (the tiny budget's), batch 16: every code path in milliseconds
+    small=dict(vae_train_images=300, vae_hidden=64, vae_latent_dim=4, batch_size=16, unpaired_size=64,
+               disc_hidden=16, train_steps=8),
+    packs={
+        # every per-member knob: reconstruction loss, KL weight, adversary input, paired reduction,
+        # training images, besides the generic ones
+        "mixed": [
+            dict(method="asp", paired=4, trial=0),
+            dict(method="pc", paired=4, trial=0),
+            dict(method="osp", paired=0, trial=1),
+            dict(method="osp", paired=5, trial=2, lr=2e-3, vae_recon_loss="mse", vae_kl_weight=0.5),
+            dict(method="asp", paired=0, trial=1, unpaired_size=40, disc_lr=3e-3, vae_adversary_input="z"),
+            dict(method="asp", paired=3, trial=2, adversary_loss="non_saturating", lambda_unpaired=0.3,
+                 vae_paired_reduction="mean", vae_recon_loss="mse"),
+            dict(method="asp", paired=3, trial=0, lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5,
+                 vae_train_images=200),
+            dict(method="asp", paired=2, trial=3, lambda_unpaired_schedule="anneal", lambda_schedule_frac=0.5,
+                 lambda_paired=0.3, vae_adversary_input="z"),
+            dict(method="pc", paired=0, trial=1),  # nothing to learn: no optimiser step, as Trainer
+            dict(method="osp", paired=2, trial=4, lambda_paired=0.0),  # paired data with weight 0: no paired term
+        ],
+        # ASP members first (as the trainer orders them): their rows are views, not gathers
+        "asp-first": [dict(method="asp", paired=2, trial=1, vae_adversary_input="z"),
+                      dict(method="asp", paired=0, trial=2, adversary_loss="non_saturating"),
+                      dict(method="osp", paired=5, trial=0), dict(method="pc", paired=1, trial=3)],
+        "pc-only": GENERIC_PACKS["pc-only"],
+        "disc-1-layer-2-steps": [dict(method="asp", paired=2, disc_layers=1, disc_steps=2, unpaired_batch=5),
+                                 dict(method="osp", paired=1, trial=1, disc_layers=1, disc_steps=2,
+                                      unpaired_batch=5),
+                                 dict(method="asp", paired=0, trial=2, disc_layers=1, disc_steps=2,
+                                      unpaired_batch=5, vae_adversary_input="z")],
+        "other-shapes": [dict(method="asp", paired=2, vae_latent_dim=2, vae_hidden=16, batch_size=7),
+                         dict(method="osp", paired=3, trial=1, vae_latent_dim=2, vae_hidden=16, batch_size=7,
+                              vae_recon_loss="mse")],
+    },
+)
+
+CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE)}
 
 
 def case_for(domain: str) -> PackCase:

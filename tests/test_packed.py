@@ -19,6 +19,7 @@ from packed_cases import DOMAINS, case_for, disc_params, flat_grads, flat_params
 from asp_dist.domains import get_domain
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import choose_trainer, run_cell
+from asp_dist.training.fast import fast_trainer
 from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import PackOfOne, pack_key, packed_module, run_pack, supports
 from asp_dist.training.packed.stacked import StackedParams
@@ -322,14 +323,15 @@ def test_a_domain_packs_its_own_cells_only(domain):
 @pytest.mark.parametrize("domain", DOMAINS)
 def test_single_cells_train_as_a_pack_of_one_where_the_domain_says_so(domain):
     """run_cell's trainer (choose_trainer): a one-member pack where the domain binds `single_cell`,
-    else the reference Trainer (the other checks here compare packs with whichever it is)."""
+    else the domain's fast trainer where it has one (the VAE's one-pass trainer), else the reference
+    Trainer (the other checks here compare packs with whichever it is)."""
     s = tiny_spec(domain, method="asp", paired=2).resolved()
     d, data = get_domain(domain), case_for(domain).member_data(s)
     trainer = choose_trainer(s, d, d.new_agents(s, 0), data[0], data[1], method_weights(s))
     if getattr(packed_module(domain), "single_cell", None) is not None:
         assert isinstance(trainer, PackOfOne) and trainer.engine == f"pack-of-one/{type(trainer.pack).__name__}"
     else:
-        assert type(trainer) is Trainer and trainer.engine == "autograd"
+        assert type(trainer) is (fast_trainer(s) or Trainer) and trainer.engine == "autograd"
 
 
 def test_stacked_adam_matches_torch_adam():

@@ -12,6 +12,8 @@ result is the one its single-cell run gives up to float rounding, whatever its p
     single.py      PackOfOne: one cell as a one-member pack, with the interface run_cell uses
     particles.py   PackedParticleTrainer (the particle update, batched, hand-derived gradients)
     levers.py      PackedLeverTrainer (the CommNet lever update, batched, hand-derived gradients)
+    vae.py         PackedVAETrainer (the one-pass VAE update, batched matmuls, autograd over the
+                   stacked parameters)
 
 A domain has a packed trainer when a module is registered for it in PACKED below. Such a module
 has three functions, which this package dispatches to by the cells' domain:
@@ -30,7 +32,8 @@ each cell of the domain that `supports` accepts as a one-member pack (single_cel
 asked by asp_dist.training.cell.choose_trainer); the domain's other cells, and every cell of a domain
 without it, run on its fast trainer where asp_dist.training.fast has one, else the reference Trainer. The particle world binds it (its packed trainer, with one
 member, is faster than the hand-derived single-cell kernel it replaced: docs/decisions.md); the lever
-world does not (its single cells run on the reference Trainer).
+world does not (its single cells run on the reference Trainer), nor does the VAE (its single cells run
+on OnePassVAETrainer, asp_dist.training.fast.vae).
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ from asp_dist.training.packed.single import PackOfOne
 PACKED: dict[str, str] = {
     "particles": "asp_dist.training.packed.particles",
     "levers": "asp_dist.training.packed.levers",
+    "vae": "asp_dist.training.packed.vae",
 }
 
 
