@@ -140,6 +140,17 @@ def test_packs_are_a_deterministic_function_of_the_grid(tmp_path):
     assert all(u.pack_id is None for u in make_units(specs, Packing()))
 
 
+def test_a_packed_trainer_kept_out_of_sweeps_leaves_its_cells_single(monkeypatch):
+    """The VAE's packed trainer is slower than its single-cell path on CPU (IN_SWEEPS = False): --pack
+    leaves VAE cells single, so the packs of existing sweeps do not change with its registration."""
+    specs = [tiny_spec("vae", method=m, paired=2, trial=t).resolved() for m in ("pc", "osp", "asp") for t in (0, 1)]
+    assert all(supports(s) for s in specs)
+    for mode in ("trial", "method"):
+        assert all(u.pack_id is None for u in make_units(specs, Packing(mode, 21)))
+    monkeypatch.setattr(packed_module("vae"), "IN_SWEEPS", True)
+    assert [len(u.specs) for u in make_units(specs, Packing("trial", 21))] == [3, 3]
+
+
 def test_packing_is_fixed_when_a_sweep_starts(tmp_path):
     specs = expand(write_space(tmp_path))
     assert resolve_packing(None, None, None) == Packing()
@@ -314,11 +325,14 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
 
 
 @pytest.mark.parametrize("domain", sorted(PACKED))
-def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path):
+def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path,
+                                                                                       monkeypatch):
     """The registry's contract, for every domain in PACKED: supports / pack_key / run_pack with the
     checkpoint arguments; a tiny pack of the domain (one cell per method) trained by the sweep's
-    trainable gives run_pack's rows, and continued from a mid-run checkpoint gives them again."""
+    trainable gives run_pack's rows, and continued from a mid-run checkpoint gives them again
+    (also for a trainer kept out of sweeps by IN_SWEEPS = False: its packs must work when asked for)."""
     module = packed_module(domain)
+    monkeypatch.setattr(module, "IN_SWEEPS", True, raising=False)
     assert all(callable(getattr(module, name, None)) for name in ("supports", "pack_key", "run_pack"))
     params = inspect.signature(module.run_pack).parameters
     assert {"bases", "curves", "progress", "checkpoint", "restore", "checkpoint_every_s"} <= set(params)

@@ -2,16 +2,21 @@
 what can share a pack, and ε-greedy exploration compared in float32 as dqn_step compares it. Checks
 of every packed trainer (packs against the reference Trainer member by member, whole cells against
 run_cell, pack-mates, divergence, checkpoints of the trainer and of a whole pack) are in
-tests/test_packed.py; single lever cells train on the reference Trainer."""
+tests/test_packed.py; here also: a single lever cell trains as a one-member pack, whose updates
+equal the reference Trainer's."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 from budgets import tiny_spec
-from packed_cases import LEVERS
+from packed_cases import LEVERS, flat_grads, flat_params
 
 import asp_dist.training.packed.levers as packed_mod
+from asp_dist.domains import get_domain
+from asp_dist.training.cell import choose_trainer
+from asp_dist.training.methods import method_weights
+from asp_dist.training.packed import PackOfOne
 from asp_dist.training.packed.levers import pack_key, supports
 
 
@@ -37,3 +42,37 @@ def test_exploration_coins_compare_in_float32_as_dqn_step_does():
     coins = torch.stack([coin, coin.nextafter(torch.tensor(0.0)), coin.nextafter(torch.tensor(1.0))])
     expected = coins < eps  # what dqn_step computes for these coins
     assert torch.equal(packed_mod.explore(coins, pack.eps[0, 0].view(1)), expected)
+
+
+@pytest.mark.parametrize("changes", [
+    dict(method="pc", paired=4),
+    dict(method="osp", paired=0),
+    dict(method="osp", paired=3, levers_eps_start=0.5, levers_eps_end=0.2, levers_eps_decay_frac=0.3),
+    dict(method="asp", paired=2),
+    dict(method="asp", paired=3, adversary_loss="non_saturating", lambda_unpaired=0.5),
+    dict(method="asp", paired=2, disc_layers=2, disc_steps=2, unpaired_batch=5),
+    dict(method="asp", paired=3, lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5),
+], ids=lambda c: "-".join(f"{k}={v}" for k, v in c.items()))
+def test_single_lever_cell_is_a_pack_of_one_equal_to_the_reference(changes):
+    spec = LEVERS.spec(**changes)
+    data, domain = LEVERS.member_data(spec), get_domain("levers")
+    ref = LEVERS.make_reference(spec, data)
+    single = choose_trainer(spec, domain, domain.new_agents(spec, spec.seed_for("init")), data[0], data[1],
+                            method_weights(spec))
+    assert isinstance(single, PackOfOne) and single.engine == "pack-of-one/PackedLeverTrainer"
+    pack = single.pack
+    for step in range(spec.train_steps):
+        ref.train_step()
+        single.train_step()
+        expected = flat_grads(ref.agents)
+        assert torch.allclose(pack.net.member_flat(0, pack.net.grad), expected, rtol=1e-4,
+                              atol=1e-6 * max(float(expected.abs().max()), 1e-3)), f"update {step}: gradient"
+        assert torch.allclose(flat_params(single.agents), flat_params(ref.agents), atol=1e-5), f"update {step}"
+    assert single.step == ref.step == spec.train_steps
+    assert torch.equal(ref.gen.get_state(), single.member.gen.get_state()), "the same random draws were made"
+    expected, got = ref.loss_columns(), single.loss_columns()
+    assert expected.keys() == got.keys()
+    for key, value in expected.items():
+        assert (got[key] is None) == (value is None), key
+        if value is not None:
+            assert got[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key

@@ -15,7 +15,9 @@ that has some rows again as a whole, and writes only the members without a row. 
 stored in the sweep's manifest when the sweep starts and cannot change afterwards.
 
 Cells that cannot be packed (a domain without a packed trainer, knob values its packed trainer
-does not implement) and groups of a single cell run one cell per trial, as without --pack.
+does not implement, a packed trainer kept out of sweeps because it is slower than the single-cell
+path: the VAE's, asp_dist.training.packed.sweep_packs) and groups of a single cell run one cell per
+trial, as without --pack.
 No Ray import.
 """
 
@@ -146,13 +148,13 @@ def make_units(specs: Sequence[CellSpec], packing: Packing) -> list[Unit]:
     specs = [s.resolved() for s in specs]
     if not packing.packed:
         return [Unit((s,)) for s in specs]
-    from asp_dist.training.packed import supports
+    from asp_dist.training.packed import sweep_packs
 
     groups: dict[tuple, tuple[str, list[CellSpec]]] = {}
     first: dict[str, int] = {s.cell_id: i for i, s in enumerate(specs)}
     unit_at: dict[int, Unit] = {}
     for i, spec in enumerate(specs):
-        if not supports(spec):
+        if not sweep_packs(spec):
             unit_at[i] = Unit((spec,))
             continue
         key, label = _group(spec, packing.mode)

@@ -23,6 +23,9 @@ has three functions, which this package dispatches to by the cells' domain:
     run_pack(specs, *, bases=None, curves=False, progress=None, checkpoint=None, restore=None,
              checkpoint_every_s=30.0) -> list of PackedResult (.spec, .row, .curve, .error), one per spec
 
+It may set ``IN_SWEEPS = False``: a sweep run with --pack then leaves its cells single
+(sweep_packs below), for a packed trainer measured slower than the single-cell path.
+
 Its run_pack is driver.run_pack bound to its trainer, so every registered domain checkpoints and
 restores a pack. The sweep (asp_dist.sweep.packing, asp_dist.sweep.tune) uses only the functions
 of this package, never a domain's module directly.
@@ -30,10 +33,11 @@ of this package, never a domain's module directly.
 A module may also bind ``single_cell = partial(single.PackOfOne, MyTrainer)``: then run_cell trains
 each cell of the domain that `supports` accepts as a one-member pack (single_cell_trainer below,
 asked by asp_dist.training.cell.choose_trainer); the domain's other cells, and every cell of a domain
-without it, run on its fast trainer where asp_dist.training.fast has one, else the reference Trainer. The particle world binds it (its packed trainer, with one
-member, is faster than the hand-derived single-cell kernel it replaced: docs/decisions.md); the lever
-world does not (its single cells run on the reference Trainer), nor does the VAE (its single cells run
-on OnePassVAETrainer, asp_dist.training.fast.vae).
+without it, run on its fast trainer where asp_dist.training.fast has one, else the reference
+Trainer. The particle and lever worlds bind it (a pack of one is faster than the hand-derived
+single-cell kernel the particles had, and 3.0× the lever reference: docs/decisions.md,
+docs/performance.md); the VAE does not (its single cells run on OnePassVAETrainer,
+asp_dist.training.fast.vae).
 """
 
 from __future__ import annotations
@@ -67,6 +71,14 @@ def supports(spec: CellSpec) -> bool:
     """Whether `spec` can train in a pack: its domain has a packed trainer that implements its knobs."""
     module = packed_module(spec.domain)
     return module is not None and bool(module.supports(spec))
+
+
+def sweep_packs(spec: CellSpec) -> bool:
+    """Whether a sweep run with --pack puts `spec` in a pack: its domain's packed trainer supports it,
+    and the module does not set ``IN_SWEEPS = False`` (a packed trainer measured slower than the
+    single-cell path on this kind of machine: the VAE's, docs/performance.md). Such a trainer stays
+    registered, tested and benchmarked, and run_pack can be called directly."""
+    return supports(spec) and bool(getattr(packed_module(spec.domain), "IN_SWEEPS", True))
 
 
 def single_cell_trainer(spec: CellSpec, agents: torch.nn.Module, paired: Tensors,

@@ -1,9 +1,10 @@
 """K lever cells trained as one batched model: the packed counterpart of the single-cell path.
 
-run_cell trains a single lever cell on the reference trainer (this module binds no `single_cell`,
-so asp_dist.training.cell.choose_trainer picks asp_dist.training.trainer.Trainer: autograd and
-torch.optim.Adam): per update ε-greedy deep Q-learning on batch_size fresh games plus batch_size replayed ones, the paired
-loss, and for ASP one discriminator per CommNet channel (f1, f2). This trainer stacks the
+The reference is the single-cell Trainer (asp_dist.training.trainer.Trainer: autograd and
+torch.optim.Adam): per update ε-greedy deep Q-learning on batch_size fresh games plus batch_size
+replayed ones, the paired loss, and for ASP one discriminator per CommNet channel (f1, f2). run_cell
+trains a single lever cell as a one-member pack of this trainer (`single_cell` below; 3.0× the
+reference's update rate, docs/performance.md), as the particle world does. This trainer stacks the
 parameters of K cells ("members") on a leading dimension and computes the same update for all of
 them with batched ops and hand-derived gradients; one batched Adam step (torch._fused_adam_ over the
 stacked buffer) updates every member's network, another every ASP member's two discriminators.
@@ -79,6 +80,7 @@ from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import driver
+from asp_dist.training.packed.single import PackOfOne
 from asp_dist.training.packed.stacked import (
     TERMS,
     PackMember,
@@ -598,3 +600,5 @@ class PackedLeverTrainer(PackRecords):
 # run_pack(specs, *, bases=None, curves=False, progress=None, checkpoint=None, restore=None,
 #          checkpoint_every_s=30.0, checkpoint_every_steps=None) -> list[PackedResult]: see driver.run_pack.
 run_pack = partial(driver.run_pack, PackedLeverTrainer)
+# A single lever cell trains as a pack of one (asp_dist.training.cell.choose_trainer).
+single_cell = partial(PackOfOne, PackedLeverTrainer)

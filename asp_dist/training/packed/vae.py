@@ -84,7 +84,15 @@ from asp_dist.training.packed.stacked import (
     member_terms,
 )
 
-__all__ = ["PackedVAETrainer", "pack_key", "run_pack", "supports", "SHARED"]
+__all__ = ["PackedVAETrainer", "pack_key", "run_pack", "supports", "SHARED", "IN_SWEEPS"]
+
+# Sweeps leave VAE cells single (asp_dist.training.packed.sweep_packs): on the 2-core CPU machine a
+# pack is slower per member-update than OnePassVAETrainer alone at every size and composition measured
+# (0.5-0.95x; docs/performance.md, "Packed VAE trainer, measured"). Profiled (10 PC members): the
+# batched matmuls of the backward pass take twice the 2-D matmuls' time for the same arithmetic, and
+# copying autograd's gradients into the stacked buffer adds a quarter; a VAE update is already a few
+# large matmuls, so there is little per-op overhead for stacking to save.
+IN_SWEEPS = False
 
 # Fields every member of a pack shares: they fix the tensor shapes and the loop.
 SHARED = ("domain", "train_steps", "batch_size", "vae_latent_dim", "vae_hidden", "disc_hidden", "disc_layers",

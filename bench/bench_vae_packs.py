@@ -1,0 +1,109 @@
+"""Same-shape VAE packs against each member alone: the most favourable packing for PackedVAETrainer.
+
+    OMP_NUM_THREADS=1 python bench/bench_vae_packs.py            # about 4 minutes idle
+    OMP_NUM_THREADS=1 python bench/bench_vae_packs.py --profile  # where a pack's time goes (10 PC members)
+
+bench_packing.py packs the paper grid's cells in grid order (mixed methods and paired counts, so P
+is padded to the pack's largest and PC members ride along in the self-play rows). Here every pack is
+K cells of ONE method and paired count that differ only in the trial (the cells `--pack method`
+would group if the VAE's pack_key held the paired count): no padding, no ride-along. Paper-size VAE
+(d = 32, hidden 512, batch 64), untrained bases (an update costs the same whatever the base taught).
+CPU time per member-update after 3 warm-up updates, the better of two alternating blocks of
+--updates updates per path. Prints one line per (method, paired, K); load averages before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import torch
+
+from asp_dist.domains import get_domain
+from asp_dist.spec import CellSpec
+from asp_dist.training.cell import choose_trainer
+from asp_dist.training.methods import method_weights
+from asp_dist.training.packed.vae import PackedVAETrainer
+
+VAE = get_domain("vae")
+
+
+def member_data(spec: CellSpec) -> tuple[dict, dict]:
+    base = VAE.new_agents(spec, 7)
+    gen = torch.Generator().manual_seed(1)
+    paired = VAE.paired(spec, base, spec.paired, gen) if spec.paired else {}
+    unpaired = VAE.unpaired(spec, base, spec.unpaired_size, gen) if method_weights(spec).needs_adversary else {}
+    return paired, unpaired
+
+
+def cpu_ms_per_member_update(method: str, paired: int, k: int, updates: int) -> tuple[float, float]:
+    """(alone, packed): CPU ms per member-update of k cells of one method and paired count."""
+    specs = [CellSpec(domain="vae", method=method, paired=paired, trial=t).resolved() for t in range(k)]
+    data = [member_data(s) for s in specs]
+    alone = [choose_trainer(s, VAE, VAE.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
+             for s, (p, u) in zip(specs, data)]
+    pack = PackedVAETrainer(specs, [p for p, _ in data], [u for _, u in data],
+                            [VAE.new_agents(s, s.seed_for("init")) for s in specs])
+    for _ in range(3):
+        pack.train_step()
+        for t in alone:
+            t.train_step()
+    best_alone = best_pack = float("inf")
+    for _ in range(2):
+        start = time.process_time()
+        for _ in range(updates):
+            pack.train_step()
+        best_pack = min(best_pack, (time.process_time() - start) / (updates * k) * 1e3)
+        start = time.process_time()
+        for t in alone:
+            for _ in range(updates):
+                t.train_step()
+        best_alone = min(best_alone, (time.process_time() - start) / (updates * k) * 1e3)
+    return best_alone, best_pack
+
+
+def profile_pc_pack(k: int = 10, updates: int = 10) -> None:
+    """torch profiler tables (self CPU time per op) of k PC cells at 32 paired: as one pack, then alone."""
+    from torch.profiler import ProfilerActivity, profile
+
+    specs = [CellSpec(domain="vae", method="pc", paired=32, trial=t).resolved() for t in range(k)]
+    data = [member_data(s) for s in specs]
+    alone = [choose_trainer(s, VAE, VAE.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
+             for s, (p, u) in zip(specs, data)]
+    pack = PackedVAETrainer(specs, [p for p, _ in data], [u for _, u in data],
+                            [VAE.new_agents(s, s.seed_for("init")) for s in specs])
+    for _ in range(3):
+        pack.train_step()
+        for t in alone:
+            t.train_step()
+    for title, run in (("pack", lambda: [pack.train_step() for _ in range(updates)]),
+                       ("alone", lambda: [t.train_step() for t in alone for _ in range(updates)])):
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            run()
+        print(f"{title}: {k} PC cells x {updates} updates")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=10))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--updates", type=int, default=30)
+    ap.add_argument("--K", type=int, nargs="+", default=[4, 10])
+    ap.add_argument("--profile", action="store_true", help="profile a pack of 10 PC cells against them alone")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    if args.profile:
+        profile_pc_pack()
+        return
+    print(f"torch {torch.__version__} ({torch.backends.cpu.get_cpu_capability()}), 1 thread; "
+          f"load average {os.getloadavg()[0]:.2f} at start")
+    for method, paired in (("pc", 32), ("osp", 32), ("asp", 32), ("osp", 8)):
+        for k in args.K:
+            alone, packed = cpu_ms_per_member_update(method, paired, k, args.updates)
+            print(f"{method} paired={paired} K={k}: alone {alone:.2f} ms, packed {packed:.2f} ms per member-update "
+                  f"-> {alone / packed:.2f}x", flush=True)
+    print(f"load average {os.getloadavg()[0]:.2f} at the end")
+
+
+if __name__ == "__main__":
+    main()
