@@ -192,6 +192,10 @@ class CellSpec:
             if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= INT64_MAX:
                 raise SpecError(f"{name} must be an integer >= 0 (in the int64 range), got {_short_repr(value)}")
         self.validate_types()
+        # Checked as given, before resolved() sets PC's and OSP's schedule aside: a bad value is refused
+        # whatever the method.
+        if self.lambda_schedule_frac is not None and not 0.0 < self.lambda_schedule_frac <= 1.0:
+            raise SpecError(f"lambda_schedule_frac must be in (0, 1], got {self.lambda_schedule_frac!r}")
 
     def validate_resolved(self) -> None:
         self.validate_types()  # again: domain defaults and the replacements of resolved() are values too

@@ -3,7 +3,10 @@
     python bench/base_quality.py --domain vae --trials 100,101 --set base_train_steps=5000,20000 \
         --set vae_kl_weight=1.0,0.5 --out results/calibration/vae_bases.csv
     python bench/base_quality.py --domain particles --trials 100-199 --set base_steps_growth=1.5 \
-        --out results/calibration/particle_bases.csv
+        --set base_max_attempts=5 --out results/calibration/particle_bases.csv
+
+(the reproduction study's run, 2026-11-24, when 5 attempts and growth 1.0 were the particle defaults;
+they are 10 and 1.5 since 2026-11-25, so a run without --set now uses those)
 
 Each base goes through the same acceptance loop as a sweep's (train_accepted_base: retries
 with the next seed, budget growing by base_steps_growth); a trial with no accepted base is a

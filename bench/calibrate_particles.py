@@ -6,6 +6,8 @@
 One base per trial (trained once, shared); for each (trial, paired): OSP at every λ0 of
 --lambda-paired and ASP at every λ1 of --lambda-unpaired (with the default λ0). Rows are
 appended after every cell; a table of the median mixed reward per setting is printed at the end.
+The domain defaults apply: since 2026-11-25 a particle ASP cell warms λ1 up over the first half
+(`--set lambda_unpaired_schedule=constant` gives the constant λ1 this grid was first run with).
 """
 
 from __future__ import annotations

@@ -231,6 +231,8 @@ VAE = PackCase(
                          dict(method="osp", paired=3, trial=1, vae_latent_dim=2, vae_hidden=16, batch_size=7,
                               vae_recon_loss="mse")],
     },
+    # an ASP cell on sampled z beside one on μ of the same trial and paired count: their U differ
+    tiny_cells=TINY_CELLS + [dict(method="asp", paired=3, trial=0, vae_adversary_input="z")],
 )
 
 CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE)}

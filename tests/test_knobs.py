@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import torch
 
 from asp_dist.domains import DOMAINS, get_domain
 from asp_dist.errors import SpecError
+from asp_dist.hashing import stable_hash
 from asp_dist.spec import COMMON_DEFAULTS, HASH_NEUTRAL, CellSpec
 from asp_dist.sweep.spaces import expand, grid_hash
 from asp_dist.training import bases
@@ -21,11 +24,17 @@ from asp_dist.training.row import comparable
 
 @pytest.mark.parametrize("knob", sorted(HASH_NEUTRAL))
 def test_a_knob_at_its_neutral_value_keeps_every_id(knob):
+    """At its neutral value a knob is left out of the hash material, so ids, seeds and base keys are
+    what they were before the knob existed: the hash of the spec without it. Off it, they change."""
     # Particles default to a λ1 warm-up and a growing base budget; start from the neutral values.
     spec = CellSpec(domain="particles", trial=7, lambda_unpaired_schedule="constant", base_steps_growth=1.0).resolved()
-    explicit = spec.replace(**{knob: HASH_NEUTRAL[knob]})
-    assert (explicit.cell_id, explicit.base_key, explicit.seed_for("train")) == \
-        (spec.cell_id, spec.base_key, spec.seed_for("train"))
+    before = {k: v for k, v in spec.to_dict().items() if k not in HASH_NEUTRAL}  # as a spec without the knobs
+    assert spec.identity_dict() == before
+    assert spec.cell_id.endswith(stable_hash(before)[:10])
+    other = {str: "x", bool: not HASH_NEUTRAL[knob], int: 2, float: 0.25}[type(HASH_NEUTRAL[knob])]
+    changed = dataclasses.replace(spec, **{knob: other})  # not validated: any other value will do
+    assert changed.identity_dict() == {**before, knob: other}
+    assert stable_hash(changed.identity_dict()) != stable_hash(before)
 
 
 def test_new_agent_knobs_share_the_base_and_base_knobs_do_not():
@@ -60,7 +69,8 @@ def test_domain_defaults_of_the_common_knobs(domain):
     assert (explicit.lambda_unpaired_schedule, explicit.base_max_attempts) == ("anneal", 3), "a set knob beats the default"
 
 
-EXAMPLE_MANIFESTS = sorted((Path(__file__).resolve().parents[1] / "results" / "examples").glob("*/manifest.json"))
+EXAMPLES = Path(__file__).resolve().parents[1] / "results" / "examples"
+EXAMPLE_MANIFESTS = sorted(EXAMPLES.glob("*/manifest.json"))
 
 
 @pytest.mark.parametrize("manifest", EXAMPLE_MANIFESTS, ids=lambda p: p.parent.name)
@@ -74,9 +84,18 @@ def test_spaces_that_ran_still_resolve_to_their_cells(manifest):
     assert [CellSpec.from_dict(s).cell_id for s in recorded["specs"]] == recorded["cells"]
 
 
+@pytest.mark.parametrize("space", ["particles-lambda", "paper-levers"])
+def test_committed_rows_without_a_manifest_are_still_cells_of_their_space(space):
+    """The same for the merged example rows of spaces whose defaults were pinned (particles-lambda) or
+    did not change (paper-levers)."""
+    recorded = set(pd.read_parquet(EXAMPLES / f"{space}.parquet", columns=["cell_id"])["cell_id"])
+    assert recorded and recorded == {s.cell_id for s in expand(space)}
+
+
 @pytest.mark.parametrize("changes, needle", [
     (dict(lambda_unpaired_schedule="cosine"), "lambda_unpaired_schedule must be one of"),
     (dict(lambda_schedule_frac=0.0), "lambda_schedule_frac must be in"),
+    (dict(method="osp", lambda_schedule_frac=7.0), "lambda_schedule_frac must be in"),  # refused before set aside
     (dict(disc_steps=0), "disc_steps must be >= 1"),
     (dict(base_steps_growth=0.0), "base_steps_growth must be > 0"),
     (dict(domain="vae", vae_recon_loss="l1"), "vae_recon_loss must be one of"),

@@ -23,7 +23,7 @@ from asp_dist.analysis.layout import NOT_KNOBS
 from asp_dist.analysis.paper import paper_paired_ranges
 from asp_dist.analysis.rank_tests import friedman, mean_ranks
 from asp_dist.domains import get_domain
-from asp_dist.spec import HASH_NEUTRAL, CellSpec
+from asp_dist.spec import CellSpec
 
 METHODS = ("pc", "osp", "asp")
 # Knobs that only shape the adversary: PC and OSP cells record them at 0 / their default, so a
@@ -55,9 +55,18 @@ def varying_knobs(rows: pd.DataFrame) -> list[str]:
     return [c for c in knobs if rows[c].astype(str).nunique() > 1]
 
 
+# The defaults the pre-registered protocol counts changed knobs from ("today's", 2026-11-24: docs/
+# reproduction.md), where a domain's default changed since (docs/decisions.md, "Domain defaults from
+# the reproduction study"). Pinned so that `asp-dist select` on the calibration rows gives what it gave.
+REGISTERED_DEFAULTS: dict[str, dict] = {
+    "particles": dict(lambda_unpaired_schedule="constant", lambda_schedule_frac=0.5, base_steps_growth=1.0,
+                      base_max_attempts=5),
+    "vae": dict(lambda_unpaired=1.0),
+}
+
+
 def _defaults(domain: str) -> dict:
-    spec = CellSpec(domain=domain).resolved()
-    return {**spec.to_dict(), **HASH_NEUTRAL}
+    return CellSpec(domain=domain, **REGISTERED_DEFAULTS.get(domain, {})).resolved().to_dict()
 
 
 def settings(rows: pd.DataFrame, domain: str, metric: str = "eval_mixed") -> list[Setting]:

@@ -67,6 +67,9 @@ class Domain(ABC):
     paper: PaperFacts
     # Base acceptance: spec field holding the bar, and whether the base score must be >= it.
     accept_field: str | None = None
+    # Spec fields besides the base's, paired count and |U| that shape U (what unpaired() returns), so
+    # that a cache of U keys on them: e.g. the VAE's adversary input (μ or sampled z).
+    unpaired_fields: tuple[str, ...] = ()
     # Extra keyword arguments for the Adam optimisers of the new agents and the discriminators,
     # e.g. {"fused": True}: one kernel for all parameters, several times faster per update on CPU
     # when a domain has many small parameter tensors and tiny batches.

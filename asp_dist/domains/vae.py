@@ -130,6 +130,7 @@ class VAEDomain(Domain):
     # One Adam kernel for all parameters: 0.48 ms per step of the 853k-parameter VAE against 2.6 ms
     # for torch's default per-tensor loop (one thread; docs/decisions.md), a quarter of an OSP update.
     optimizer_options = {"fused": True}
+    unpaired_fields = ("vae_adversary_input",)  # U holds the base's μ or sampled z
     metrics = {
         "mixed": MetricInfo(False, "Eq. 1: mean of the two mixed MSEs (base enc→new dec, new enc→base dec)"),
         "mixed_base_encoder": MetricInfo(False, "per-pixel test MSE of base encoder → new decoder"),

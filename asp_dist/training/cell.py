@@ -7,9 +7,9 @@ Pure PyTorch, no Ray: the sweep service wraps this, tests call it directly. Phas
     train  train new agents with the method's loss, L = w_sp·L_sp + λ0·L_p + λ1·L_u
     eval   mixed teams (Eq. 1), both directions, self-play of the new agents and of the base
 
-The trainer is chosen per cell (choose_trainer): a particle cell whose knobs the packed particle
-trainer implements trains as a one-member pack of it (asp_dist.training.packed.single), a VAE cell
-on its one-pass trainer (asp_dist.training.fast), every other cell on the reference Trainer
+The trainer is chosen per cell (choose_trainer): a particle or lever cell whose knobs its domain's
+packed trainer implements trains as a one-member pack of it (asp_dist.training.packed.single), a VAE
+cell on its one-pass trainer (asp_dist.training.fast), every other cell on the reference Trainer
 (asp_dist.training.trainer: autograd). The full training
 state can be checkpointed at any step and restored; a restored run gives the same row as an
 uninterrupted one (all randomness flows through saved generators).
@@ -111,8 +111,8 @@ def choose_trainer(spec: CellSpec, domain: Domain, agents: torch.nn.Module, pair
                    weights: LossWeights) -> Trainer | PackOfOne:
     """The trainer of one cell, chosen per cell (not by the domain): a one-member pack of the domain's
     packed trainer where the domain trains its single cells so and the trainer implements every
-    knob value of the spec (asp_dist.training.packed.single_cell_trainer; today particle cells
-    without the replay buffer or the speaker-only paired loss), else the domain's fast trainer
+    knob value of the spec (asp_dist.training.packed.single_cell_trainer; today lever cells and
+    particle cells without the replay buffer or the speaker-only paired loss), else the domain's fast trainer
     (asp_dist.training.fast; today the VAE's), else the reference Trainer."""
     single = packed.single_cell_trainer(spec, agents, paired, unpaired)
     if single is not None:

@@ -158,10 +158,11 @@ def run_pack(trainer_class: type[PackTrainer], specs: Sequence[CellSpec], *, bas
             p, after_p, u_cache = data_cache[key]
             paired[i], unpaired[i] = p, {}
             if weights.needs_adversary:
-                if spec.unpaired_size not in u_cache:
-                    u_cache[spec.unpaired_size] = domain.unpaired(
-                        spec, base.agents, spec.unpaired_size, generator_from_state(after_p))
-                unpaired[i] = u_cache[spec.unpaired_size]
+                u_key = (spec.unpaired_size, *(getattr(spec, f) for f in domain.unpaired_fields))
+                if u_key not in u_cache:
+                    u_cache[u_key] = domain.unpaired(spec, base.agents, spec.unpaired_size,
+                                                     generator_from_state(after_p))
+                unpaired[i] = u_cache[u_key]
             agents[i] = domain.new_agents(spec, spec.seed_for("init"))
 
     order = [live[k] for k in trainer_class.member_order([specs[i] for i in live])]

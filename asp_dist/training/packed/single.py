@@ -2,7 +2,7 @@
 
 A domain whose packed trainer is also its fast single-cell path binds this to its trainer:
 ``single_cell = partial(single.PackOfOne, MyTrainer)`` (asp_dist.training.packed.PACKED; today the
-particle world). asp_dist.training.cell.choose_trainer then trains every cell the trainer supports
+particle and lever worlds). asp_dist.training.cell.choose_trainer then trains every cell the trainer supports
 as a pack of one; the others run on the domain's fast trainer or the reference Trainer. The update is the packed
 trainer's, with the member's own generator drawn in the single-cell order; its arithmetic is that
 of a pack of one (a pack of other shapes rounds a few kernels differently: rows are reproducible

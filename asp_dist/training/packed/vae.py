@@ -88,10 +88,12 @@ __all__ = ["PackedVAETrainer", "pack_key", "run_pack", "supports", "SHARED", "IN
 
 # Sweeps leave VAE cells single (asp_dist.training.packed.sweep_packs): on the 2-core CPU machine a
 # pack is slower per member-update than OnePassVAETrainer alone at every size and composition measured
-# (0.5-0.95x; docs/performance.md, "Packed VAE trainer, measured"). Profiled (10 PC members): the
+# (0.3-0.95x; docs/performance.md, "Packed VAE trainer, measured"). Profiled (10 PC members): the
 # batched matmuls of the backward pass take twice the 2-D matmuls' time for the same arithmetic, and
 # copying autograd's gradients into the stacked buffer adds a quarter; a VAE update is already a few
-# large matmuls, so there is little per-op overhead for stacking to save.
+# large matmuls, so there is little per-op overhead for stacking to save. Packs follow from the grid,
+# the packing and this flag: setting it True regroups the VAE cells of an unfinished --pack sweep when
+# it resumes, so finish such sweeps first.
 IN_SWEEPS = False
 
 # Fields every member of a pack shares: they fix the tensor shapes and the loop.
