@@ -86,6 +86,8 @@ from asp_dist.training.packed.stacked import (
     PackMember,
     PackRecords,
     StackedParams,
+    asp_members_first,
+    checked_members,
     column,
     member_terms,
     retain_freed_memory,
@@ -145,23 +147,12 @@ class PackedLeverTrainer(PackRecords):
     `loss_columns(i)` its row's loss_* columns and `members[i].curve` its learning curve (probes:
     set `members[i].probe` as run_cell sets Trainer.probe)."""
 
-    @staticmethod
-    def member_order(specs: Sequence[CellSpec]) -> list[int]:
-        """The members' places in the pack (driver.run_pack): ASP members first, so that their rows
-        of the pack are a prefix (views instead of gathers); otherwise the order given."""
-        return sorted(range(len(specs)), key=lambda i: not method_weights(specs[i]).needs_adversary)
+    member_order = staticmethod(asp_members_first)  # their rows of the pack are a prefix
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[CommNet]):
-        specs = [s.resolved() for s in specs]
-        if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
-            raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
-        for s in specs:
-            if not supports(s):
-                raise ValueError(f"{s.cell_id} cannot be packed (lever cells only)")
-            if pack_key(s) != pack_key(specs[0]):
-                diff = [n for n in SHARED if getattr(s, n) != getattr(specs[0], n)]
-                raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+        specs = checked_members(specs, paired, unpaired, agents, supports=supports, shared=SHARED,
+                                cannot="lever cells only")
         retain_freed_memory()
         domain = get_domain("levers")
         s0 = specs[0]

@@ -83,6 +83,7 @@ from asp_dist.training.packed.stacked import (
     PackMember,
     PackRecords,
     StackedParams,
+    checked_members,
     column,
     member_terms,
 )
@@ -163,16 +164,8 @@ class PackedParticleTrainer(PackRecords):
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[ParticleAgents]):
-        specs = [s.resolved() for s in specs]
-        if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
-            raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
-        for s in specs:
-            if not supports(s):
-                raise ValueError(f"{s.cell_id} cannot be packed (particle cells without replay or speaker-only "
-                                 "paired loss only)")
-            if pack_key(s) != pack_key(specs[0]):
-                diff = [n for n in SHARED if getattr(s, n) != getattr(specs[0], n)]
-                raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+        specs = checked_members(specs, paired, unpaired, agents, supports=supports, shared=SHARED,
+                                cannot="particle cells without replay or speaker-only paired loss only")
         domain = get_domain("particles")
         s0 = specs[0]
         self.M, self.B, self.T = len(specs), s0.batch_size, s0.particles_episode_len

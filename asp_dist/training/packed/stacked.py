@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from asp_dist.spec import CellSpec
-from asp_dist.training.methods import LossWeights, lambda_factor
+from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
 from asp_dist.training.row import LOSS_TERMS
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
 
@@ -320,6 +320,29 @@ class PackMember:
     @property
     def failed(self) -> bool:
         return self.error is not None
+
+
+def checked_members(specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence, *,
+                    supports: Callable[[CellSpec], bool], shared: Sequence[str], cannot: str) -> list[CellSpec]:
+    """The members' resolved specs, after the checks every packed trainer's constructor makes: one
+    spec, P, U and agents per member (at least one), each spec supported (else ValueError: `cannot`
+    says which cells can), and all agreeing on the `shared` fields (tensor shapes, training length)."""
+    specs = [s.resolved() for s in specs]
+    if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
+        raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
+    for s in specs:
+        if not supports(s):
+            raise ValueError(f"{s.cell_id} cannot be packed ({cannot})")
+        diff = [n for n in shared if getattr(s, n) != getattr(specs[0], n)]
+        if diff:
+            raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+    return specs
+
+
+def asp_members_first(specs: Sequence[CellSpec]) -> list[int]:
+    """A member order (a packed trainer's member_order): members with an adversary first, so that their
+    rows of the pack are a prefix (views instead of gathers); otherwise the order given."""
+    return sorted(range(len(specs)), key=lambda i: not method_weights(specs[i]).needs_adversary)
 
 
 def member_terms(weights: LossWeights, n_paired: int) -> tuple[str, ...]:
