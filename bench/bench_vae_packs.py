@@ -37,8 +37,9 @@ def member_data(spec: CellSpec) -> tuple[dict, dict]:
     return paired, unpaired
 
 
-def cpu_ms_per_member_update(method: str, paired: int, k: int, updates: int) -> tuple[float, float]:
-    """(alone, packed): CPU ms per member-update of k cells of one method and paired count."""
+def warm_trainers(method: str, paired: int, k: int) -> tuple[list, PackedVAETrainer]:
+    """k cells of one method and paired count (trials 0..k-1): each on run_cell's trainer, and as one
+    pack; both after 3 warm-up updates."""
     specs = [CellSpec(domain="vae", method=method, paired=paired, trial=t).resolved() for t in range(k)]
     data = [member_data(s) for s in specs]
     alone = [choose_trainer(s, VAE, VAE.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
@@ -49,6 +50,12 @@ def cpu_ms_per_member_update(method: str, paired: int, k: int, updates: int) -> 
         pack.train_step()
         for t in alone:
             t.train_step()
+    return alone, pack
+
+
+def cpu_ms_per_member_update(method: str, paired: int, k: int, updates: int) -> tuple[float, float]:
+    """(alone, packed): CPU ms per member-update of k cells of one method and paired count."""
+    alone, pack = warm_trainers(method, paired, k)
     best_alone = best_pack = float("inf")
     for _ in range(2):
         start = time.process_time()
@@ -67,16 +74,7 @@ def profile_pc_pack(k: int = 10, updates: int = 10) -> None:
     """torch profiler tables (self CPU time per op) of k PC cells at 32 paired: as one pack, then alone."""
     from torch.profiler import ProfilerActivity, profile
 
-    specs = [CellSpec(domain="vae", method="pc", paired=32, trial=t).resolved() for t in range(k)]
-    data = [member_data(s) for s in specs]
-    alone = [choose_trainer(s, VAE, VAE.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
-             for s, (p, u) in zip(specs, data)]
-    pack = PackedVAETrainer(specs, [p for p, _ in data], [u for _, u in data],
-                            [VAE.new_agents(s, s.seed_for("init")) for s in specs])
-    for _ in range(3):
-        pack.train_step()
-        for t in alone:
-            t.train_step()
+    alone, pack = warm_trainers("pc", 32, k)
     for title, run in (("pack", lambda: [pack.train_step() for _ in range(updates)]),
                        ("alone", lambda: [t.train_step() for t in alone for _ in range(updates)])):
         with profile(activities=[ProfilerActivity.CPU]) as prof:
