@@ -256,7 +256,8 @@ class ParticlesDomain(Domain):
         base_train_steps=3000, eval_episodes=1000,
         # Chosen by the reproduction study (docs/reproduction.md, docs/decisions.md): λ1 warms up over
         # the first half so self-play settles before the adversary pulls, and a base that misses the
-        # bar is retried with a growing budget (1.5^k) up to 10 times, so no trial loses its base.
+        # bar is retried with a growing budget (1.5^k) up to 10 times, so that a trial does not lose its
+        # cells to unlucky seeds (every trial of the confirmatory run and the paper grid got a base).
         lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5,
         base_steps_growth=1.5, base_max_attempts=10,
     )
