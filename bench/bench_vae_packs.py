@@ -7,7 +7,8 @@ bench_packing.py packs the paper grid's cells in grid order (mixed methods and p
 is padded to the pack's largest and PC members ride along in the self-play rows). Here every pack is
 K cells of ONE method and paired count that differ only in the trial (the cells `--pack method`
 would group if the VAE's pack_key held the paired count): no padding, no ride-along. Paper-size VAE
-(d = 32, hidden 512, batch 64), untrained bases (an update costs the same whatever the base taught).
+(d = 32, hidden 512, batch 64), untrained bases (an update costs the same whatever the base taught),
+P, U and the trainers built as bench_packing.py builds them.
 CPU time per member-update after 3 warm-up updates, the better of two alternating blocks of
 --updates updates per path. Prints one line per (method, paired, K); load averages before and after.
 """
@@ -19,33 +20,19 @@ import os
 import time
 
 import torch
+from bench_packing import build_pack, cell_data, single_trainer  # the same setup as the grid-order benchmark
 
-from asp_dist.domains import get_domain
 from asp_dist.spec import CellSpec
-from asp_dist.training.cell import choose_trainer
-from asp_dist.training.methods import method_weights
 from asp_dist.training.packed.vae import PackedVAETrainer
-
-VAE = get_domain("vae")
-
-
-def member_data(spec: CellSpec) -> tuple[dict, dict]:
-    base = VAE.new_agents(spec, 7)
-    gen = torch.Generator().manual_seed(1)
-    paired = VAE.paired(spec, base, spec.paired, gen) if spec.paired else {}
-    unpaired = VAE.unpaired(spec, base, spec.unpaired_size, gen) if method_weights(spec).needs_adversary else {}
-    return paired, unpaired
 
 
 def warm_trainers(method: str, paired: int, k: int) -> tuple[list, PackedVAETrainer]:
     """k cells of one method and paired count (trials 0..k-1): each on run_cell's trainer, and as one
     pack; both after 3 warm-up updates."""
     specs = [CellSpec(domain="vae", method=method, paired=paired, trial=t).resolved() for t in range(k)]
-    data = [member_data(s) for s in specs]
-    alone = [choose_trainer(s, VAE, VAE.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
-             for s, (p, u) in zip(specs, data)]
-    pack = PackedVAETrainer(specs, [p for p, _ in data], [u for _, u in data],
-                            [VAE.new_agents(s, s.seed_for("init")) for s in specs])
+    data = cell_data(specs)
+    alone = [single_trainer(s, d) for s, d in zip(specs, data)]
+    pack = build_pack(PackedVAETrainer, specs, data)
     for _ in range(3):
         pack.train_step()
         for t in alone:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from asp_dist.analysis.markdown import to_markdown
 from asp_dist.analysis.rank_tests import bootstrap_median_ci
 from asp_dist.results.store import read_rows
 
@@ -31,11 +32,12 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, metric: str, keys: list[str], n_bo
     ci = lambda x: bootstrap_median_ci(x, n_boot=n_boot, seed=seed)  # noqa: E731
     trials = sorted(set(a["trial"]) & set(b["trial"]))
     a, b = a[a["trial"].isin(trials)], b[b["trial"].isin(trials)]
+    b_by_key = b.set_index(keys)
     out = []
     for key, ga in a.groupby(keys, sort=True):
-        gb = b.set_index(keys).loc[[key]] if key in b.set_index(keys).index else None
-        if gb is None:
+        if key not in b_by_key.index:
             continue
+        gb = b_by_key.loc[[key]]
         xa, xb = ga[metric].to_numpy(float), gb[metric].to_numpy(float)
         lo_a, hi_a = ci(xa)
         lo_b, hi_b = ci(xb)
@@ -49,14 +51,6 @@ def compare(a: pd.DataFrame, b: pd.DataFrame, metric: str, keys: list[str], n_bo
                     "median_diff": float(np.median(paired)) if len(paired) else np.nan,
                     "diff_ci": f"{lo_d:.4g}–{hi_d:.4g}", "diff_ci_has_0": bool(lo_d <= 0 <= hi_d)})
     return pd.DataFrame(out)
-
-
-def markdown(table: pd.DataFrame) -> str:
-    """A markdown table (pandas' to_markdown needs the optional `tabulate`)."""
-    cell = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
-    lines = ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in table.itertuples(index=False)]
-    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     trials = sorted(set(a["trial"]) & set(b["trial"]))
     print(f"{args.domain}, {args.metric}: A = {args.a} ({len(a)} rows), B = {args.b} ({len(b)} rows); "
           f"{len(trials)} trials in both; bootstrap {args.bootstrap}, seed {args.seed}")
-    print(markdown(table) if args.markdown else table.to_string(index=False))
+    print(to_markdown(table).rstrip() if args.markdown else table.to_string(index=False))
     print(f"groups: {len(table)}; intervals overlap in {int(table['overlap'].sum())}; A's median inside B's interval "
           f"in {int(table['a_in_b'].sum())}, B's inside A's in {int(table['b_in_a'].sum())}; interval of the median "
           f"per-trial difference contains 0 in {int(table['diff_ci_has_0'].sum())}")
