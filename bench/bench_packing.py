@@ -140,12 +140,15 @@ def cell_data(specs: list[CellSpec]) -> list[tuple[dict, dict]]:
         key = (s.domain, s.trial, s.paired)
         if key not in cache:
             gen = torch.Generator().manual_seed(s.seed_for("data"))
-            cache[key] = [domain.paired(s, base, s.paired, gen) if s.paired else {}, gen, None]
-        entry = cache[key]
-        adversary = method_weights(s).needs_adversary
-        if adversary and entry[2] is None:
-            entry[2] = domain.unpaired(s, base, s.unpaired_size, entry[1])
-        out.append((entry[0], entry[2] if adversary else {}))
+            cache[key] = (domain.paired(s, base, s.paired, gen) if s.paired else {}, gen.get_state(), {})
+        p, after_p, u_cache = cache[key]
+        u = {}
+        if method_weights(s).needs_adversary:  # U keyed as run_pack keys it (|U|, the domain's unpaired_fields)
+            u_key = (s.unpaired_size, *(getattr(s, f) for f in domain.unpaired_fields))
+            if u_key not in u_cache:
+                u_cache[u_key] = domain.unpaired(s, base, s.unpaired_size, torch.Generator().set_state(after_p))
+            u = u_cache[u_key]
+        out.append((p, u))
     return out
 
 
