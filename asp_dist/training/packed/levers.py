@@ -241,9 +241,6 @@ class PackedLeverTrainer(PackRecords):
         self.pos = self.filled = 0
         # d(w_sp · mse(mean over seats of Q(chosen), reward)) / dQ(chosen) = (value - reward) · 2·w_sp / (3·G)
         self.sp_coef = {G: column([2.0 * m.weights.self_play / (AGENTS * G) for m in mem]) for G in (B, 2 * B)}
-        self.w64 = {name: column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
-                    for name in ("self_play", "paired")}
-        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
 
         # ---- discriminator data ----------------------------------------------------------------------
         if self.Ma:

@@ -79,7 +79,6 @@ from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import driver
 from asp_dist.training.packed.single import PackOfOne
 from asp_dist.training.packed.stacked import (
-    TERMS,
     PackMember,
     PackRecords,
     StackedParams,
@@ -242,9 +241,6 @@ class PackedParticleTrainer(PackRecords):
         self.vc2 = column([s.particles_value_coef for s in sp])
         self.dv_scale = column([-2.0 * s.particles_value_coef * m.weights.self_play / N for s, m in zip(sp, mem)])
         self.gamma = column([s.particles_gamma for s in sp])
-        self.w64 = {name: column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
-                    for name in ("self_play", "paired")}
-        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
 
         # ---- self-play state: positions (M, B, 2), targets, the shared episode clock -----------------
         self.pos = torch.zeros(M, B, 2)

@@ -135,12 +135,15 @@ class PackRecords:
 
     A subclass sets, before calling _init_records(): M, members (each with spec, weights, gen,
     terms, probe, curve, failed_step, error, failed), train_steps, net and dnet (StackedParams or
-    None), present ((M, len(TERMS)) bool: the terms a member has), w64 (float64 loss weights
-    "self_play" and "paired"), Ma, adv_idx and lam_now (the ASP members, λ1 per update of the
+    None), Ma, adv_idx and lam_now (the ASP members, λ1 per update of the
     chunk). It implements _freeze_params(rows) (freeze the members' parameters and
     discriminators) and _draw_chunk() (the random draws of updates [step, step + CHUNK))."""
 
     def _init_records(self) -> None:
+        # per member: the loss terms it has, and its float64 loss weights (as Trainer sums them)
+        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in self.members])
+        self.w64 = {name: column([getattr(m.weights, name) for m in self.members], dtype=torch.float64).view(-1)
+                    for name in ("self_play", "paired")}
         self.step = 0
         self.window_start = int(0.9 * self.train_steps)
         self.curve_every = max(1, self.train_steps // CURVE_POINTS)

@@ -76,7 +76,6 @@ from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import lambda_factor, method_weights
 from asp_dist.training.packed import driver
 from asp_dist.training.packed.stacked import (
-    TERMS,
     PackMember,
     PackRecords,
     StackedParams,
@@ -226,9 +225,6 @@ class PackedVAETrainer(PackRecords):
         kinds = {s.vae_recon_loss for i, s in enumerate(sp) if i in self.sp_rows}
         self.recon_kind = kinds.pop() if len(kinds) == 1 else "mixed"
         self.recon_bce = torch.tensor([s.vae_recon_loss == "bce" for s in sp])
-        self.w64 = {name: column([getattr(m.weights, name) for m in mem], dtype=torch.float64).view(-1)
-                    for name in ("self_play", "paired")}
-        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in mem])
 
         # ---- discriminator data: the ASP members' U, concatenated ----------------------------------
         if self.Ma:
