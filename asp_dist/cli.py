@@ -12,6 +12,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shlex
 import sys
 import time
@@ -104,7 +105,15 @@ def cmd_cell(args: argparse.Namespace) -> int:
     from asp_dist.training.cell import run_cell
 
     torch.set_num_threads(args.threads)
-    row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
+    try:
+        row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
+    except (MemoryError, RuntimeError) as e:  # within CellSpec's size estimates, yet too big for this machine
+        asked = re.search(r"allocate (\d+) bytes", str(e))
+        if not isinstance(e, MemoryError) and asked is None:
+            raise
+        raise SpecError(f"out of memory for this cell {spec.cell_id}"
+                        + (f": it asked for {int(asked[1])} bytes at once" if asked else "")
+                        + "; lower its sizes (see `asp-dist fields`)") from None
     if out is not None:
         write_single_row(row, out)
         print(f"wrote {out}", file=sys.stderr)

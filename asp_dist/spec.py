@@ -192,21 +192,21 @@ class CellSpec:
             if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= INT64_MAX:
                 raise SpecError(f"{name} must be an integer >= 0 (in the int64 range), got {_short_repr(value)}")
         self.validate_types()
-        # Checked as given, before resolved() sets PC's and OSP's schedule aside: a bad value is refused
+        # Checked as given, before resolved() sets PC's and OSP's λ1 and schedule aside: a bad value is refused
         # whatever the method.
+        self.refuse_negatives()
         if self.lambda_schedule_frac is not None and not 0.0 < self.lambda_schedule_frac <= 1.0:
             raise SpecError(f"lambda_schedule_frac must be in (0, 1], got {self.lambda_schedule_frac!r}")
 
-    def validate_resolved(self) -> None:
-        self.validate_types()  # again: domain defaults and the replacements of resolved() are values too
+    def refuse_negatives(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if value is None:
-                continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                continue
-            if value < 0:
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
                 raise SpecError(f"{f.name} must be >= 0, got {value!r}")
+
+    def validate_resolved(self) -> None:
+        self.validate_types()  # again: domain defaults and the replacements of resolved() are values too
+        self.refuse_negatives()
         for name in ("train_steps", "batch_size", "unpaired_size", "unpaired_batch", "eval_episodes",
                      "disc_hidden", "disc_layers", "base_max_attempts", "disc_steps"):
             value = getattr(self, name)
@@ -218,7 +218,33 @@ class CellSpec:
                 raise SpecError(f"{name} must be > 0, got {value!r}")
         if not 0.0 < self.lambda_schedule_frac <= 1.0:
             raise SpecError(f"lambda_schedule_frac must be in (0, 1], got {self.lambda_schedule_frac!r}")
-        get_domain(self.domain).validate(self)
+        domain = get_domain(self.domain)
+        for name, bound in {**UPPER_BOUNDS, **domain.upper_bounds}.items():
+            if getattr(self, name) > bound:
+                raise SpecError(f"{name} must be <= {bound}, got {getattr(self, name)!r}")
+        # Computed in logs: growth^attempts overflows a float long before it is refused.
+        last_attempt = (math.log(self.base_train_steps or 1)
+                        + (self.base_max_attempts - 1) * math.log(self.base_steps_growth))
+        if last_attempt > math.log(UPPER_BOUNDS["base_train_steps"]):
+            raise SpecError(f"base_train_steps · base_steps_growth^(base_max_attempts - 1) (the last base attempt's "
+                            f"updates) must be <= {UPPER_BOUNDS['base_train_steps']}, got {self.base_train_steps} · "
+                            f"{self.base_steps_growth!r}^{self.base_max_attempts - 1}")
+        domain.validate(self)
+        sizes = {**self.common_tensor_sizes(domain.channel_dims(self)), **domain.tensor_sizes(self)}
+        label, numbers = max(sizes.items(), key=lambda item: item[1])
+        if numbers > MAX_TENSOR:
+            raise SpecError(f"out of memory for this cell: one tensor of {label} = {numbers} numbers, above the "
+                            f"budget of {MAX_TENSOR} (1 GiB of float32) per tensor")
+
+    def common_tensor_sizes(self, widths: dict[str, int]) -> dict[str, int]:
+        """Numbers in the largest tensors of U and the discriminators, by the knobs that set them."""
+        sizes = {"disc_hidden × disc_hidden": self.disc_hidden ** 2 if self.disc_layers > 1 else 0,
+                 "unpaired_batch × disc_hidden": self.unpaired_batch * self.disc_hidden}
+        for channel, width in widths.items():
+            sizes[f"unpaired_size × {channel} width {width}"] = self.unpaired_size * width
+            sizes[f"unpaired_batch × {channel} width {width}"] = self.unpaired_batch * width
+            sizes[f"disc_hidden × {channel} width {width}"] = self.disc_hidden * width
+        return sizes
 
     # ---- identity ----------------------------------------------------------------------------
     def identity_dict(self) -> dict[str, Any]:
@@ -285,6 +311,22 @@ NEW_AGENTS_ONLY = frozenset({"particles_replay_size", "particles_paired_listener
 
 # Fields that change what a cell records, never what it trains or how it is evaluated.
 OUTPUT_ONLY_FIELDS = frozenset({"record_figure_data"})
+
+# Upper bounds of the size-like knobs every domain has (a domain adds its own: Domain.upper_bounds). Far
+# above the paper (its largest value in brackets) and a laptop, below what exhausts memory or time; a
+# product of knobs that would still not fit is refused by MAX_TENSOR. Validation only: no cell id changes.
+UPPER_BOUNDS: dict[str, int] = {
+    "paired": 100_000,  # [64] P is held whole and its loss taken on every update
+    "unpaired_size": 1_000_000,  # [4096] U is held whole
+    "unpaired_batch": 1_000_000, "batch_size": 1_000_000, "eval_episodes": 1_000_000,  # [256, 256, 10000] rows
+    "disc_hidden": 16_384,  # [64] a disc_hidden² weight matrix (1 GiB of float32 at the bound)
+    "disc_layers": 100, "disc_steps": 1_000, "base_max_attempts": 1_000,  # [2, 2, 10]
+    # [25000, 5000] a billion updates is weeks of CPU even at the fastest cells' ~1 ms per update
+    "train_steps": 10**9, "base_train_steps": 10**9,
+}
+# Numbers in any one tensor of a cell, as Domain.tensor_sizes estimates them: 2^28 (1 GiB of float32) is
+# ~30x the largest tensor of a paper cell (the VAE's 10000 test images x 784 pixels) and fits a laptop.
+MAX_TENSOR = 2**28
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
 FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}

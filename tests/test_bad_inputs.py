@@ -114,6 +114,10 @@ SPACE_FILES = {
     "list-domain": "[[grid]]\naxes = { domain = [['signaling']] }",
     "bool-flag-int": "[[grid]]\naxes = { record_figure_data = [2] }",
     "vae": "[[grid]]\nfixed = { vae_train_images = 300 }\naxes = { domain = ['vae'], method = ['asp'], paired = [1] }",
+    "huge-paired": "[[grid]]\naxes = { domain = ['signaling'], paired = [1000000000] }",
+    "huge-trials": "[[grid]]\naxes = { domain = ['signaling'], trial = { first = 0, last = 9999999 } }",  # 10^7 cells
+    "huge-product": "[[grid]]\naxes = { method = ['pc', 'osp', 'asp'], trial = { first = 0, last = 499999 } }",
+    "huge-tensor": "[[grid]]\naxes = { domain = ['vae'], unpaired_size = [1000000] }",
 }
 
 
@@ -184,6 +188,22 @@ case("cell-tokens", [*CELL, "--set", "signaling_tokens=1"], "signaling_tokens mu
 case("cell-frac", [*CELL, "--set", "lambda_schedule_frac=0"], "lambda_schedule_frac must be in")
 case("cell-lr-0", [*CELL, "--set", "lr=0"], "lr must be > 0")
 case("cell-lr-text", [*CELL, "--set", "lr=fast"], "lr must be of type float")
+# sizes no machine can run (bounds in asp_dist/spec.py and the domains), negative numbers whatever the method
+case("cell-paired-huge", ["cell", "--domain", "signaling", "--method", "asp", "--paired", "1000000000"],
+     "paired must be <= 100000, got 1000000000")
+case("cell-states-huge", [*CELL, "--set", "signaling_states=1000000000000"],
+     "signaling_states must be <= 1000000, got 1000000000000")
+case("cell-states-times-tokens", [*CELL, "--set", "signaling_states=1000000", "--set", "signaling_tokens=10000"],
+     "out of memory for this cell: one tensor of signaling_states × signaling_tokens = 10000000000 numbers, above "
+     "the budget of 268435456")
+case("cell-levers-ids", ["cell", "--domain", "levers", "--method", "asp", "--paired", "1", "--set",
+                         "levers_num_ids=1000"], "levers_num_ids must be <= 100, got 1000")
+case("cell-growth-overflow", [*CELL, "--set", "base_train_steps=10", "--set", "base_steps_growth=1e300"],
+     "base_train_steps · base_steps_growth^(base_max_attempts - 1) (the last base attempt's updates) must be <= "
+     "1000000000")
+for method in ("pc", "osp", "asp"):
+    case(f"cell-{method}-neg-lambda", ["cell", "--domain", "signaling", "--method", method, "--paired", "1", "--set",
+                                       "lambda_unpaired=-1"], "lambda_unpaired must be >= 0, got -1.0")
 case("cell-out-suffix", [*CELL, "--out", "{scratch}/row.txt"], "must name a .parquet file")
 case("cell-out-exists", [*CELL, "--out", "{scratch}/existing.parquet"], "never overwritten")
 case("cell-out-no-dir", [*CELL, "--out", "{root}/no/such/row.parquet"], "does not exist")
@@ -248,7 +268,11 @@ for name, needle in {"bool-paired": "paired must be of type int, got True",
                      "no-grid": "needs at least one [[grid]]", "bad-toml": "invalid TOML",
                      "self-include": "includes itself", "axis-and-fixed": "both an axis and fixed",
                      "choice": "adversary_loss must be one of", "list-domain": "domain must be of type str",
-                     "bool-flag-int": "record_figure_data must be of type bool"}.items():
+                     "bool-flag-int": "record_figure_data must be of type bool",
+                     "huge-paired": "paired must be <= 100000, got 1000000000",
+                     "huge-trials": "axis trial has 10000000 values, more than the 1000000 cells a space may hold",
+                     "huge-product": "axes method (3) × trial (500000) give 1500000 cells, more than the 1000000",
+                     "huge-tensor": "out of memory for this cell: one tensor of unpaired_size × width 784"}.items():
     case(f"sweep-space-{name}", ["sweep", f"{{spaces}}/{name}.toml", *R], needle)
 case("sweep-name-path", [*S, "--name", "../escape"], "invalid sweep name")
 case("sweep-name-empty", [*S, "--name", ""], "invalid sweep name")

@@ -75,8 +75,17 @@ class Domain(ABC):
     # when a domain has many small parameter tensors and tiny batches.
     optimizer_options: dict[str, Any] = {}
 
+    # Upper bounds of this domain's size-like knobs, checked by CellSpec with its common ones (spec.UPPER_BOUNDS).
+    upper_bounds: dict[str, int] = {}
+
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""
+
+    def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
+        """Numbers in the largest tensors a cell of `spec` allocates, by the knobs that set them (an estimate,
+        {"signaling_states × signaling_tokens": S·A}); CellSpec refuses a cell above spec.MAX_TENSOR, so that
+        a product of knobs each within its bound is refused before it exhausts memory."""
+        return {}
 
     @abstractmethod
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:

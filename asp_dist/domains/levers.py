@@ -206,6 +206,21 @@ class LeversDomain(Domain):
             require(0.0 <= getattr(spec, name) <= 1.0, f"{name} must be in [0, 1], got {getattr(spec, name)}")
         require(spec.levers_base_lr > 0, "levers_base_lr must be > 0")
 
+    # [the paper's values in brackets] evaluation lists every game, num_ids³ of them (970200 at 100), in Python;
+    # the CommNet's weights are hidden × 2·hidden; the replay buffer holds 7 numbers per game.
+    upper_bounds = {"levers_num_ids": 100, "levers_hidden": 16_384, "levers_replay_size": 10_000_000}  # [10, 32, 4096]
+
+    def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
+        h, ids = spec.levers_hidden, spec.levers_num_ids
+        games = {"batch_size": 2 * spec.batch_size, "paired": max(spec.paired, POOL),
+                 "unpaired_size": -(-spec.unpaired_size // AGENTS),
+                 "unpaired_batch": -(-spec.unpaired_batch // AGENTS),
+                 # the mixed teams: 3 seatings of the eval games, both networks run on every seat
+                 "eval_episodes": 6 * min(spec.eval_episodes, ids * (ids - 1) * (ids - 2))}
+        width = max(ids, 2 * h)  # drawing games (rand over the IDs) or [h1, c1]
+        return {"levers_hidden × 2·levers_hidden": 2 * h * h,
+                **{f"{knob} games × {AGENTS} seats × width {width}": n * AGENTS * width for knob, n in games.items()}}
+
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"f1": spec.levers_hidden, "f2": spec.levers_hidden}
 

@@ -280,6 +280,20 @@ class ParticlesDomain(Domain):
         require(spec.particles_base_lr > 0, f"particles_base_lr must be > 0, got {spec.particles_base_lr}")
         require(spec.paired <= POOL, f"paired must be <= {POOL} for particles, got {spec.paired}")
 
+    # [the paper's values in brackets] widths of weight matrices; envs and time steps of a rollout, whose
+    # tensors are all kept for the backward pass; the replay buffer holds ~10 numbers per transition.
+    upper_bounds = {"particles_message_dim": 16_384, "particles_hidden": 16_384,  # [128, 64]
+                    "particles_episode_len": 100_000, "particles_rollout_len": 10_000,  # [40, 1]
+                    "particles_base_envs": 1_000_000, "particles_replay_size": 10_000_000}  # [256, 10000]
+
+    def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
+        width = max(spec.particles_message_dim, spec.particles_hidden)
+        return {"particles_message_dim × particles_hidden": spec.particles_message_dim * spec.particles_hidden,
+                "particles_rollout_len × particles_base_envs × width":
+                    spec.particles_rollout_len * spec.particles_base_envs * width,
+                "particles_rollout_len × batch_size × width": spec.particles_rollout_len * spec.batch_size * width,
+                "eval_episodes × width": spec.eval_episodes * width, f"{POOL} paired episodes × width": POOL * width}
+
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"message": spec.particles_message_dim}
 

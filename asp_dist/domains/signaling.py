@@ -96,10 +96,18 @@ class SignalingDomain(Domain):
         "convention_match": MetricInfo(True, "fraction of states where the new speaker sends the base's token"),
     }
 
+    # [paper-scale values in brackets] the speaker is an S × A table, the listener A × A.
+    upper_bounds = {"signaling_states": 1_000_000, "signaling_tokens": 10_000}  # [32, 4]
+
     def validate(self, spec: CellSpec) -> None:
         require(spec.signaling_tokens >= 2, "signaling_tokens must be >= 2")
         require(spec.signaling_states >= spec.signaling_tokens,
                 f"signaling_states ({spec.signaling_states}) must be >= signaling_tokens ({spec.signaling_tokens})")
+
+    def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
+        A = spec.signaling_tokens
+        return {"signaling_states × signaling_tokens": spec.signaling_states * A,
+                "batch_size × signaling_tokens": spec.batch_size * A, "paired × signaling_tokens": spec.paired * A}
 
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"token": spec.signaling_tokens}

@@ -149,6 +149,19 @@ class VAEDomain(Domain):
         require(spec.vae_train_images <= 60_000, f"vae_train_images must be 0 (all) or at most 60000, got {spec.vae_train_images}")
         require(spec.eval_episodes <= 10_000, f"eval_episodes (test images) must be at most 10000, got {spec.eval_episodes}")
 
+    # [the paper's values in brackets] widths of the weight matrices; images of a base batch (784 pixels each)
+    upper_bounds = {"vae_latent_dim": 16_384, "vae_hidden": 16_384, "vae_base_batch": 1_000_000}  # [128, 512, 128]
+
+    def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
+        width = max(PIXELS, spec.vae_hidden, 2 * spec.vae_latent_dim)  # an image, a hidden layer or (μ, log σ²)
+        rows = {"batch_size": spec.batch_size, "vae_base_batch": spec.vae_base_batch,
+                "paired": PAIRED_BLOCK * max(1, math.ceil(spec.paired / PAIRED_BLOCK)),
+                "unpaired_size": spec.unpaired_size, "unpaired_batch": spec.unpaired_batch,
+                "eval_episodes": spec.eval_episodes}
+        return {"vae_hidden × 784 pixels": spec.vae_hidden * PIXELS,
+                "vae_hidden × vae_latent_dim": 2 * spec.vae_hidden * spec.vae_latent_dim,
+                **{f"{knob} × width {width}": n * width for knob, n in rows.items()}}
+
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"latent": spec.vae_latent_dim}
 

@@ -17,6 +17,7 @@ A space file is small and readable (stdlib ``tomllib``)::
     paired = [0, 1, 2, 4, 8, 16, 32, 64]
     trial  = { first = 0, last = 9 }   # inclusive integer range
 
+A space of more than MAX_CELLS cells is refused from its axis lengths, before any cell is built.
 Expansion validates every value through ``CellSpec`` (types, ranges, domain rules), rejects
 domains whose module is not in this installation, drops duplicate cells (two sub-grids may
 share cells) and orders cells by (domain, trial, paired, method) so that the cells sharing a
@@ -26,6 +27,7 @@ base run close together. The grid hash is a stable hash of the sorted cell ids.
 from __future__ import annotations
 
 import itertools
+import math
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -36,6 +38,9 @@ from asp_dist.spec import CellSpec, coerce_field
 
 SPACE_KEYS = {"description", "include", "fixed", "grid"}
 GRID_KEYS = {"name", "fixed", "axes"}
+# Cells one space may hold, counted before a grid is built: the paper's grid has 1470; a million resolved
+# cells take ~2 GB and a quarter of an hour to expand, and a sweep of them months of CPU.
+MAX_CELLS = 1_000_000
 
 
 def spaces_dir() -> Path:
@@ -62,14 +67,17 @@ def space_file(name_or_path: str) -> Path:
     return path
 
 
-def _axis_values(space: str, field: str, raw: Any) -> list[Any]:
+def _axis_values(space: str, field: str, raw: Any) -> range | list[Any]:
     if isinstance(raw, dict):
         if set(raw) != {"first", "last"} or not all(isinstance(v, int) for v in raw.values()):
             raise SweepError(f"space {space}: axis {field} must be a list or {{ first = INT, last = INT }}, "
                              f"got {raw!r}")
         if raw["last"] < raw["first"]:
             raise SweepError(f"space {space}: axis {field} has last < first ({raw!r})")
-        return list(range(raw["first"], raw["last"] + 1))
+        if raw["last"] - raw["first"] + 1 > MAX_CELLS:  # before len(): it overflows past 2^63
+            raise SweepError(f"space {space}: axis {field} has {raw['last'] - raw['first'] + 1} values, more than "
+                             f"the {MAX_CELLS} cells a space may hold; split it into smaller spaces")
+        return range(raw["first"], raw["last"] + 1)  # lazy: counted before anything is built
     if not isinstance(raw, list) or not raw:
         raise SweepError(f"space {space}: axis {field} must be a non-empty list, got {raw!r}")
     return raw
@@ -99,6 +107,9 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
     cells: list[dict[str, Any]] = []
     for included in data.get("include", []):
         cells += load_space(included, _seen + (space,))
+        if len(cells) > MAX_CELLS:
+            raise SweepError(f"space {space}: its includes hold {len(cells)} cells, more than the {MAX_CELLS} "
+                             f"a space may hold; split it into smaller spaces")
     fixed = {k: _coerce(space, k, v) for k, v in data.get("fixed", {}).items()}
     grids = data.get("grid", [])
     if not grids and not data.get("include"):
@@ -110,8 +121,14 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
             raise SweepError(f"space {label}: unknown key(s) {', '.join(unknown)}; "
                              f"allowed: {', '.join(sorted(GRID_KEYS))}")
         grid_fixed = {**fixed, **{k: _coerce(label, k, v) for k, v in grid.get("fixed", {}).items()}}
-        axes = {k: [_coerce(label, k, v) for v in _axis_values(label, k, raw)]
-                for k, raw in grid.get("axes", {}).items()}
+        axes = {k: _axis_values(label, k, raw) for k, raw in grid.get("axes", {}).items()}
+        count = math.prod(len(values) for values in axes.values())
+        if len(cells) + count > MAX_CELLS:  # counted first: the product is never built
+            sizes = " × ".join(f"{k} ({len(values)})" for k, values in axes.items())
+            before = f" after the {len(cells)} before it" if cells else ""
+            raise SweepError(f"space {label}: axes {sizes} give {count} cells{before}, more than the {MAX_CELLS} "
+                             f"a space may hold; split it into smaller spaces")
+        axes = {k: [_coerce(label, k, v) for v in values] for k, values in axes.items()}
         overlap = sorted(set(axes) & set(grid_fixed))
         if overlap:
             raise SweepError(f"space {label}: {', '.join(overlap)} is both an axis and fixed; keep one")
