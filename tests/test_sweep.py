@@ -23,6 +23,7 @@ from pathlib import Path
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+import sockets
 
 from asp_dist.cli import main
 from asp_dist.results import store
@@ -93,14 +94,49 @@ def parquet_files(sweep_dir):
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
-    """`asp-dist sweep smoke` (18 tiny signaling cells), run once for the tests that read it."""
+    """`asp-dist sweep smoke` (18 tiny signaling cells), run once for the tests that read it. While it
+    runs, the listening TCP sockets of its whole process tree are sampled (test_sweep_listens_on_loopback_only)."""
     results = tmp_path_factory.mktemp("smoke-results")
-    proc = cli("sweep", "smoke", "--results", str(results))
-    return results, proc
+    logs = tmp_path_factory.mktemp("smoke-logs")
+    with open(logs / "out", "w+") as out, open(logs / "err", "w+") as err:  # files: a full pipe cannot stall it
+        proc = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(results)],
+                                env=env(), stdout=out, stderr=err, text=True, start_new_session=True)
+        seen: dict[tuple[str, int], str] = {}  # (address, port) -> name of the process listening on it
+        deadline = time.monotonic() + 420
+        try:
+            while proc.poll() is None and time.monotonic() < deadline:
+                for pid, address, port in sockets.listening(sockets.process_tree(proc.pid)):
+                    seen.setdefault((address, port), _process_name(pid))
+                time.sleep(0.2)
+            proc.wait(timeout=max(1, deadline - time.monotonic()))
+        finally:
+            kill_group(proc)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, (logs / "out").read_text(), (logs / "err").read_text())
+    return results, done, seen
+
+
+def _process_name(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return "?"
+
+
+def test_sweep_listens_on_loopback_only(smoke):
+    """Nothing the embedded Ray or the driver starts accepts connections from beyond 127.0.0.1 (issue: an open
+    Ray head on a shared network runs anyone's code): GCS, raylet, workers and the driver all bind loopback."""
+    _, proc, seen = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = set(seen.values())
+    assert {"gcs_server", "raylet"} <= names and any(n.startswith("ray::") for n in names), seen
+    assert [f"{name} on {address}:{port}" for (address, port), name in seen.items()
+            if not sockets.is_loopback(address)] == []
+    assert not (Path.home() / ".ray" / "auth_token").exists() or os.environ.get("RAY_AUTH_MODE"), \
+        "the sweep wrote a Ray token file into the home directory"
 
 
 def test_smoke_sweep_end_to_end(smoke):
-    results, proc = smoke
+    results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "18/18 cells done, 0 failed" in proc.stdout
     sweep_dir = results / "smoke"
@@ -126,7 +162,7 @@ def test_smoke_sweep_end_to_end(smoke):
 
 
 def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, monkeypatch, capsys):
-    results, proc = smoke
+    results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
     monkeypatch.chdir(tmp_path)  # no ./results here: the name must be looked up under --results
     assert main(["query", "smoke", "--results", str(results), "--sql",

@@ -41,6 +41,7 @@ import getpass
 import json
 import logging
 import os
+import secrets
 import select
 import shutil
 import signal
@@ -49,7 +50,7 @@ import sys
 import tempfile
 import threading
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import ExitStack, contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
@@ -64,6 +65,7 @@ os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_
 import ray  # noqa: E402
 import torch  # noqa: E402
 from ray import tune  # noqa: E402
+from ray.exceptions import AuthenticationError  # noqa: E402
 
 from asp_dist.data.mnist import MNISTError  # noqa: E402
 from asp_dist.errors import SpecError, StorageError, SweepError  # noqa: E402
@@ -313,6 +315,60 @@ def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
 
 
 # ---- Ray ----------------------------------------------------------------------------------------
+LOOPBACK = "127.0.0.1"
+
+
+@contextmanager
+def loopback_only() -> Iterator[None]:
+    """The environment of an embedded Ray that nobody else can reach: every server of it (GCS, raylet,
+    object manager, workers, the driver's own) binds 127.0.0.1, and it asks for a token anyway.
+
+    Loopback: Ray binds a node's servers to the loopback address only when its node IP is 127.0.0.1, and
+    it keeps that IP (instead of swapping in the machine's address) only in its single-machine mode,
+    RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 -- read from the environment by the processes it starts, and
+    at import by this one, hence the constant set too. Token: loopback is open to every local user of
+    a shared machine, so with RAY_AUTH_MODE unset Ray's own default for a new local cluster (token
+    authentication) stays on, with a random per-process RAY_AUTH_TOKEN where the user configured none
+    (no RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token): it lives in the environment of this
+    process and of the Ray processes it starts, and nothing is written to ~/.ray. RAY_AUTH_MODE set by
+    the user is theirs. tests/test_sweep.py checks the listening sockets of a running sweep."""
+    from ray._private import ray_constants
+
+    keys = (ray_constants.ENABLE_RAY_CLUSTERS_ENV_VAR, "RAY_AUTH_MODE", "RAY_AUTH_TOKEN")
+    saved_env = {k: os.environ.get(k) for k in keys}
+    saved_flag = ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[ray_constants.ENABLE_RAY_CLUSTERS_ENV_VAR] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    configured = (os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                  or (Path.home() / ".ray" / "auth_token").is_file())
+    if "RAY_AUTH_MODE" not in os.environ and not configured:
+        os.environ["RAY_AUTH_TOKEN"] = _session_token()
+    # Ray says at every start that it turned token authentication on: that is the expected state here.
+    auth_log = logging.getLogger("ray._private.authentication.authentication_token_setup")
+    level = auth_log.level
+    auth_log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        auth_log.setLevel(level)
+        ray_constants.ENABLE_RAY_CLUSTER = saved_flag
+        for key, value in saved_env.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+_TOKEN: list[str] = []
+
+
+def _session_token() -> str:
+    """One random token per process: Ray's token loader caches the first one it reads."""
+    if not _TOKEN:
+        _TOKEN.append(secrets.token_hex(32))
+    return _TOKEN[0]
+
+
 def default_ray_temp_dir() -> str:
     """Short (Unix sockets live under it, ~107-char limit) and per user, never a bare /tmp/ray."""
     return f"/tmp/asp-ray-{getpass.getuser()}"
@@ -331,6 +387,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
     main_thread = threading.current_thread() is threading.main_thread()
     sigterm = signal.getsignal(signal.SIGTERM) if main_thread else None
     reaper = None
+    stack = ExitStack()  # the embedded Ray's environment, put back after its shutdown
     try:
         try:
             if address:
@@ -343,14 +400,19 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                     log.info("pruned old Ray session %s", pruned)
                 prune_reaper_logs(temp_dir)
                 reaper = _start_reaper(temp_dir)
-                os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # local-only default: nothing listens outside
+                stack.enter_context(loopback_only())
                 context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir,
-                                   include_dashboard=dashboard, dashboard_host="127.0.0.1",
+                                   _node_ip_address=LOOPBACK, include_dashboard=dashboard, dashboard_host=LOOPBACK,
                                    object_store_memory=OBJECT_STORE_BYTES, **common)
                 if dashboard and context.dashboard_url:
                     (stream or sys.stderr).write(f"Ray dashboard: http://{context.dashboard_url}\n")
         except ConnectionError as e:
             raise SweepError(f"cannot connect to the Ray cluster at {address}: {e}") from None
+        except AuthenticationError as e:  # the cluster wants a token this process lacks, or another one
+            first = str(e).strip().splitlines()[0] if str(e).strip() else "token refused"
+            raise SweepError(f"the Ray cluster at {address} refused this process ({first}); give it the cluster's "
+                             f"token: RAY_AUTH_MODE=token and RAY_AUTH_TOKEN (or RAY_AUTH_TOKEN_PATH), see "
+                             f"docs/sweeps.md, Security") from None
         finally:
             # ray.init sets its own SIGTERM handler (sys.exit); put back the sweep's (ledger.sigterm_as_interrupt).
             if sigterm is not None:
@@ -361,6 +423,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
             ray.shutdown()
         finally:
             _stop_reaper(reaper)
+            stack.close()
 
 
 def _hard_exit(code: int, message: str) -> None:
