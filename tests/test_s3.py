@@ -585,7 +585,11 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
 
 @pytest.fixture
 def two_nodes_without_shared_disk(s3, tmp_path):
-    """Two Ray nodes on loopback, each with its own temp dir and working directory, both with the S3 env."""
+    """Two Ray nodes on loopback, each with its own temp dir and working directory, both with the S3 env and
+    Ray's token authentication on (the driver joins with cluster.env)."""
+    from test_sweep import RAY, CLUSTER_TOKEN
+
+    node_env = dict(s3.env, RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN)
     port = free_port()
     address = f"127.0.0.1:{port}"
     dirs = {name: tmp_path / name for name in ("head", "worker", "driver")}
@@ -594,8 +598,8 @@ def two_nodes_without_shared_disk(s3, tmp_path):
     temps = [f"/tmp/asp-s3h-{os.getpid()}", f"/tmp/asp-s3w-{os.getpid()}"]
     common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
               "--object-store-memory=100000000"]
-    procs = [subprocess.Popen(["ray", "start", "--head", f"--port={port}", "--include-dashboard=false",
-                               f"--temp-dir={temps[0]}", *common], env=s3.env, cwd=dirs["head"],
+    procs = [subprocess.Popen([RAY, "start", "--head", f"--port={port}", "--include-dashboard=false",
+                               f"--temp-dir={temps[0]}", *common], env=node_env, cwd=dirs["head"],
                               start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     wait_nodes = textwrap.dedent(f"""\
         import ray, time, sys
@@ -607,18 +611,18 @@ def two_nodes_without_shared_disk(s3, tmp_path):
         """)
     try:
         for _ in range(60):
-            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=s3.env, capture_output=True,
+            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=node_env, capture_output=True,
                                    text=True, timeout=180, cwd=dirs["driver"])
             if probe.stdout.strip() == "1":
                 break
             time.sleep(1)
-        procs.append(subprocess.Popen(["ray", "start", f"--address={address}", f"--temp-dir={temps[1]}", *common],
-                                      env=s3.env, cwd=dirs["worker"], start_new_session=True,
+        procs.append(subprocess.Popen([RAY, "start", f"--address={address}", f"--temp-dir={temps[1]}", *common],
+                                      env=node_env, cwd=dirs["worker"], start_new_session=True,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=s3.env, capture_output=True, text=True,
+        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=node_env, capture_output=True, text=True,
                                timeout=180, cwd=dirs["driver"])
         assert probe.stdout.strip() == "2", probe.stderr[-2000:]
-        yield SimpleNamespace(address=address, dirs=dirs, temps=[Path(t) for t in temps])
+        yield SimpleNamespace(address=address, dirs=dirs, temps=[Path(t) for t in temps], env=node_env)
     finally:
         for p in reversed(procs):
             try:
@@ -646,7 +650,7 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
 """)
     results = f"s3://{BUCKET}/cluster-runs"
     proc = cli(s3, "sweep", grid, "--name", "c", "--results", results, "--address", cluster.address, "--workers", "2",
-               cwd=cluster.dirs["driver"])
+               cwd=cluster.dirs["driver"], RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=cluster.env["RAY_AUTH_TOKEN"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"cluster {cluster.address}" in proc.stderr
     with pytest.MonkeyPatch.context() as mp:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -42,9 +43,10 @@ PLACE_COLUMNS = {"sweep_id", "ray_node_id", "ray_version", "code_revision"}
 
 
 def env(**extra):
+    """This process's environment for a CLI subprocess; a None in `extra` removes that variable."""
     e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
     e.update(extra)
-    return e
+    return {k: v for k, v in e.items() if v is not None}
 
 
 def cli(*args, timeout=420, **extra_env):
@@ -326,14 +328,24 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+RAY = str(Path(sys.executable).with_name("ray"))  # this interpreter's Ray, not whatever is on PATH
+CLUSTER_TOKEN = secrets.token_hex(16)
+
+
+def token_env(**extra):
+    """The environment of a cluster's nodes and of a driver that joins it: Ray's token authentication on
+    (a cluster opens ports beyond loopback: cluster/README.md)."""
+    return env(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN, **extra)
+
+
 @pytest.fixture
 def two_node_cluster(tmp_path):
     port = free_port()
     address = f"127.0.0.1:{port}"
     common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
               "--object-store-memory=100000000"]
-    head = subprocess.Popen(["ray", "start", "--head", f"--port={port}", "--include-dashboard=false",
-                             "--temp-dir=/tmp/asp-rt-h", *common], env=env(), start_new_session=True,
+    head = subprocess.Popen([RAY, "start", "--head", f"--port={port}", "--include-dashboard=false",
+                             "--temp-dir=/tmp/asp-rt-h", *common], env=token_env(), start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     procs = [head]
     try:
@@ -344,16 +356,16 @@ def two_node_cluster(tmp_path):
                       "    time.sleep(0.5)\n"
                       "print(sum(n['Alive'] for n in ray.nodes()))\n")
         for attempt in range(60):  # the head takes a while to accept connections
-            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=env(), capture_output=True,
+            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=token_env(), capture_output=True,
                                    text=True, timeout=180)
             if probe.stdout.strip() == "1":
                 break
             time.sleep(1)
-        procs.append(subprocess.Popen(["ray", "start", f"--address={address}", "--temp-dir=/tmp/asp-rt-w", *common],
-                                      env=env(), start_new_session=True, stdout=subprocess.DEVNULL,
+        procs.append(subprocess.Popen([RAY, "start", f"--address={address}", "--temp-dir=/tmp/asp-rt-w", *common],
+                                      env=token_env(), start_new_session=True, stdout=subprocess.DEVNULL,
                                       stderr=subprocess.DEVNULL))
-        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=env(), capture_output=True, text=True,
-                               timeout=180)
+        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=token_env(), capture_output=True,
+                               text=True, timeout=180)
         assert probe.stdout.strip() == "2", probe.stderr[-2000:]
         yield address
     finally:
@@ -374,8 +386,16 @@ def test_two_node_cluster_via_address(tmp_path, two_node_cluster):
 fixed = { train_steps = 300, unpaired_size = 256 }
 axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
 """)
-    proc = cli("sweep", grid, "--name", "c", "--results", str(tmp_path / "results"), "--address", two_node_cluster,
-               "--workers", "2")
+    # Without the cluster's token: refused in one line, nothing written.
+    results = tmp_path / "results"
+    refused = cli("sweep", grid, "--name", "c", "--results", str(results), "--address", two_node_cluster,
+                  "--connect-timeout", "5", RAY_AUTH_MODE=None, RAY_AUTH_TOKEN=None)
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    errors = [line for line in refused.stderr.splitlines() if line.startswith("asp-dist: error:")]
+    assert len(errors) == 1 and "RAY_AUTH_TOKEN" in errors[0], refused.stderr[-3000:]
+    assert not (results / "c").exists()
+    proc = cli("sweep", grid, "--name", "c", "--results", str(results), "--address", two_node_cluster,
+               "--workers", "2", RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"cluster {two_node_cluster}" in proc.stderr
     df = store.read_rows(tmp_path / "results" / "c")

@@ -407,7 +407,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                 if dashboard and context.dashboard_url:
                     (stream or sys.stderr).write(f"Ray dashboard: http://{context.dashboard_url}\n")
         except ConnectionError as e:
-            raise SweepError(f"cannot connect to the Ray cluster at {address}: {e}") from None
+            raise SweepError(f"cannot connect to the Ray cluster at {address}: {e}{_token_hint()}") from None
         except AuthenticationError as e:  # the cluster wants a token this process lacks, or another one
             first = str(e).strip().splitlines()[0] if str(e).strip() else "token refused"
             raise SweepError(f"the Ray cluster at {address} refused this process ({first}); give it the cluster's "
@@ -424,6 +424,16 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
         finally:
             _stop_reaper(reaper)
             stack.close()
+
+
+def _token_hint() -> str:
+    """Ray retries a refused token until it gives up as if nobody answered: say what may be missing."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() == "token" and (
+            os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+            or (Path.home() / ".ray" / "auth_token").is_file()):
+        return " (or the cluster's token differs from this process's)"
+    return ("; a cluster with token authentication also needs RAY_AUTH_MODE=token and RAY_AUTH_TOKEN "
+            "(docs/sweeps.md, Security)")
 
 
 def _hard_exit(code: int, message: str) -> None:
@@ -452,7 +462,7 @@ def _connect_deadline(address: str, timeout_s: float) -> Iterator[None]:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 _hard_exit(2, f"asp-dist: error: no answer from the Ray cluster at {address} within "
-                              f"{timeout_s:g} s; check --address, or raise --connect-timeout")
+                              f"{timeout_s:g} s; check --address, or raise --connect-timeout{_token_hint()}")
             if wake_r is None:
                 done.wait(min(remaining, 0.5))
                 continue
