@@ -532,6 +532,49 @@ def test_query_and_stats_of_a_sweep_on_s3(s3, smoke_on_s3):
 
 
 @pytest.mark.slow
+def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(s3, smoke_on_s3):
+    """The S3 twin of tests/test_sweep.py's damaged-file test: a cut-short, an empty and another cell's object
+    under a cell's key are copied into damaged/ and deleted (one warning each), the cells train again and
+    each row is written once; the other objects are not rewritten. Runs after the other smoke_on_s3 tests."""
+    from test_sweep import PLACE_COLUMNS, clean
+
+    from asp_dist.results import location, store
+    from asp_dist.training.row import comparable
+
+    run = smoke_on_s3
+    assert run.proc.returncode == 0, run.proc.stderr[-3000:]
+    prefix = "smoke-runs/smoke/"
+    cells = sorted(k for k in keys(s3, f"{run.results}/smoke/cells/") if k.endswith(".parquet"))
+
+    def read_rows():
+        with pytest.MonkeyPatch.context() as mp:
+            use_env(mp, s3.env)
+            df = store.read_rows(f"{run.results}/smoke")
+            location._CLIENTS.clear()
+        return {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
+                for r in df.to_dict("records")}
+
+    rows = read_rows()
+    body = {k: s3.client.get_object(Bucket=BUCKET, Key=k)["Body"].read() for k in cells[:4]}
+    cut, empty, wrong = cells[:3]
+    s3.client.put_object(Bucket=BUCKET, Key=cut, Body=body[cut][:200])
+    s3.client.put_object(Bucket=BUCKET, Key=empty, Body=b"")
+    s3.client.put_object(Bucket=BUCKET, Key=wrong, Body=body[cells[3]])
+    intact = {k: v for k, v in keys(s3, f"{run.results}/smoke/cells/").items() if k not in (cut, empty, wrong)}
+
+    resumed = cli(s3, "resume", "smoke", "--results", run.results, "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    warnings = [line for line in resumed.stderr.splitlines() if "the cell trains again" in line]
+    assert len(warnings) == 3 and all(line.startswith("asp-dist: warning: s3://") for line in warnings), resumed.stderr
+    assert read_rows() == rows, "a redone cell's row differs from its first run's"
+    after = keys(s3, f"{run.results}/smoke/cells/")
+    assert {k: after[k] for k in intact} == intact, "a valid cell's object was rewritten"
+    kept = [k for k in keys(s3, f"{run.results}/smoke/{store.DAMAGED_DIR}/") if "/cells/" in k]
+    assert sorted(k.rsplit("/", 1)[1] for k in kept) == sorted(k.rsplit("/", 1)[1] for k in (cut, empty, wrong))
+    assert all(k.startswith(prefix + store.DAMAGED_DIR + "/") for k in kept)
+
+
+@pytest.mark.slow
 def test_sigkill_of_driver_then_resume_on_s3(s3, tmp_path):
     from test_sweep import assert_rows_match, expected_rows, kill_group, space
 

@@ -207,3 +207,43 @@ def test_rejected_base_is_remembered_for_the_other_cells_of_its_trial(tmp_path, 
     assert len(calls) == 1
     base, cached = get_base(CellSpec(**{**unreachable, "particles_accept_return": 0.0}), tmp_path)  # other key
     assert not cached and base.score >= 0.0 and len(calls) == 2
+
+
+# ---- damaged cell files --------------------------------------------------------------------------------
+def test_damaged_cell_files_are_found_and_set_aside_and_valid_ones_never_touched(rows, tmp_path):
+    """What the sweep's driver does before it counts (tune._run): each kind of damage under a grid cell's own
+    name is found and moved, with its curve, into damaged/<time>/; valid files, stray files and temp files are
+    left alone. (End to end, with the cells trained again: tests/test_sweep.py, tests/test_s3.py.)"""
+    extra = [dict(rows[0], cell_id=f"{rows[0]['cell_id']}-{i}") for i in range(4)]
+    grid = {r["cell_id"]: (r["domain"], r["method"]) for r in rows + extra}
+    for row in rows + extra:
+        store.write_curve(tmp_path, row, [{"step": 1.0}])
+        assert store.write_row(tmp_path, row, "s")
+    paths = {r["cell_id"]: store.cell_path(tmp_path, r["domain"], r["method"], r["cell_id"]) for r in rows + extra}
+    cut, empty, wrong, dangling = (paths[r["cell_id"]] for r in extra)
+    cut.write_bytes(cut.read_bytes()[:100])
+    empty.write_bytes(b"")
+    wrong.write_bytes(paths[rows[1]["cell_id"]].read_bytes())
+    dangling.unlink()
+    dangling.symlink_to(tmp_path / "nowhere")
+    stray = cut.with_name("not-in-the-grid.parquet")
+    stray.write_bytes(b"junk")
+    valid = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in paths.values() if p not in (cut, empty, wrong, dangling)}
+
+    found = store.damaged_cells(tmp_path, grid)
+    assert set(found) == {r["cell_id"] for r in extra}
+    assert "cannot be read as Parquet" in found[cut.stem][1] and "cannot be read as Parquet" in found[empty.stem][1]
+    assert f"holds cell {rows[1]['cell_id']!r}" in found[wrong.stem][1]
+    assert found[dangling.stem][1] == "is a symbolic link to nothing"
+    assert not any(store.is_done(tmp_path, *grid[c], c) for c in found)
+
+    moved = store.set_aside_damaged(tmp_path, grid)
+    assert sorted(old for old, _, _ in moved) == sorted([cut, empty, wrong, dangling])
+    for old, new, _ in moved:
+        assert not os.path.lexists(old) and os.path.lexists(new)
+        assert new.relative_to(tmp_path).parts[0] == store.DAMAGED_DIR
+        curve = store.curve_path(tmp_path, *grid[old.stem], old.stem)
+        assert not curve.exists(), "the curve of a cell that trains again stays with its damaged row"
+    assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in valid} == valid and stray.exists()
+    assert store.damaged_cells(tmp_path, grid) == {} and store.set_aside_damaged(tmp_path, grid) == []
+    assert store.write_row(tmp_path, extra[3], "s"), "the dangling link's cell can be written again"

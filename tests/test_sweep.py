@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pandas as pd
 import pyarrow.parquet as pq
@@ -104,6 +105,8 @@ def smoke(tmp_path_factory):
         proc = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(results)],
                                 env=env(), stdout=out, stderr=err, text=True, start_new_session=True)
         seen: dict[tuple[str, int], str] = {}  # (address, port) -> name of the process listening on it
+        token_file = Path.home() / ".ray" / "auth_token"
+        had_token_file = token_file.exists()
         deadline = time.monotonic() + 420
         try:
             while proc.poll() is None and time.monotonic() < deadline:
@@ -114,7 +117,7 @@ def smoke(tmp_path_factory):
         finally:
             kill_group(proc)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, (logs / "out").read_text(), (logs / "err").read_text())
-    return results, done, seen
+    return results, done, SimpleNamespace(listening=seen, wrote_token_file=token_file.exists() and not had_token_file)
 
 
 def _process_name(pid: int) -> str:
@@ -129,12 +132,11 @@ def test_sweep_listens_on_loopback_only(smoke):
     Ray head on a shared network runs anyone's code): GCS, raylet, workers and the driver all bind loopback."""
     _, proc, seen = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
-    names = set(seen.values())
-    assert {"gcs_server", "raylet"} <= names and any(n.startswith("ray::") for n in names), seen
-    assert [f"{name} on {address}:{port}" for (address, port), name in seen.items()
+    names = set(seen.listening.values())
+    assert {"gcs_server", "raylet"} <= names and any(n.startswith("ray::") for n in names), seen.listening
+    assert [f"{name} on {address}:{port}" for (address, port), name in seen.listening.items()
             if not sockets.is_loopback(address)] == []
-    assert not (Path.home() / ".ray" / "auth_token").exists() or os.environ.get("RAY_AUTH_MODE"), \
-        "the sweep wrote a Ray token file into the home directory"
+    assert not seen.wrote_token_file, "the sweep wrote a Ray token file into the home directory"
 
 
 def test_smoke_sweep_end_to_end(smoke):
@@ -401,3 +403,40 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
     df = store.read_rows(tmp_path / "results" / "c")
     assert len(df) == 6 and df["cell_id"].is_unique
     assert df["ray_node_id"].nunique() == 2, df[["cell_id", "ray_node_id"]]
+
+
+def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, tmp_path):
+    """A cell file the reader rejects (cut short, empty, another cell's, a dangling link) is moved into
+    damaged/ with one warning line and its cell trains again, its row written once; every valid cell file is
+    left as it was (same bytes, same mtime). Runs after the other smoke tests: it changes the sweep."""
+    results, proc, _ = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    sweep_dir = results / "smoke"
+    files = parquet_files(sweep_dir)
+    rows = {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
+            for r in store.read_rows(sweep_dir).to_dict("records")}
+    cut, empty, wrong, dangling = files[:4]
+    cut.write_bytes(cut.read_bytes()[:200])
+    empty.write_bytes(b"")
+    wrong.write_bytes(files[4].read_bytes())  # another cell's row under this cell's name
+    dangling.unlink()
+    dangling.symlink_to(tmp_path / "nowhere.parquet")
+    damaged = {p.stem for p in (cut, empty, wrong, dangling)}
+    intact = {f: (f.stat().st_mtime_ns, f.read_bytes()) for f in files[4:]}
+    status = cli("status", "smoke", "--results", str(results))
+    assert status.stdout.splitlines()[-1].split() == ["total", "14", "0", "4"]
+
+    resumed = cli("resume", "smoke", "--results", str(results))
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    warnings = [line for line in resumed.stderr.splitlines() if "the cell trains again" in line]
+    assert len(warnings) == 4 and all(line.startswith("asp-dist: warning: ") for line in warnings), resumed.stderr
+    assert "18/18 cells done, 0 failed" in resumed.stdout
+    for path in (cut, empty, wrong, dangling):
+        assert path.is_file() and not path.is_symlink()
+    again = {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
+             for r in store.read_rows(sweep_dir, strict=True).to_dict("records")}
+    assert again == rows, "a redone cell's row differs from its first run's"
+    assert {f: (f.stat().st_mtime_ns, f.read_bytes()) for f in files[4:]} == intact, "a valid cell was rewritten"
+    kept = [p for p in (sweep_dir / store.DAMAGED_DIR).rglob("*.parquet") if p.parent.parent.parent.name == "cells"]
+    assert {p.stem for p in kept} == damaged and any(p.is_symlink() for p in kept)
+    assert not store.damaged_cells(sweep_dir, {s.cell_id: (s.domain, s.method) for s in expand("smoke")})

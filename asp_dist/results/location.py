@@ -489,32 +489,15 @@ def write_replace(path: AnyPath, data: bytes | str) -> None:
     atomic_write(path, data)
 
 
-def write_create(path: AnyPath, data: bytes) -> bool:
-    """Create `path` with `data` unless it exists (False then): local temp file + link, S3 conditional PUT."""
+def move_aside(path: AnyPath, dest: AnyPath) -> None:
+    """Move `path` to `dest` (a new name): a rename on a local disk (a symbolic link moves as the link), a
+    copy then a delete on S3 (a reader may see both for a moment, never neither)."""
     if isinstance(path, S3Path):
-        return path.create(data)
-    import tempfile
-
-    path = Path(path)
-    if path.exists():
-        return False
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            return False
-        except OSError:
-            os.replace(tmp, path)
-        return True
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        dest.write_bytes(path.read_bytes())
+        path.unlink(missing_ok=True)
+        return
+    Path(dest).parent.mkdir(parents=True, exist_ok=True)
+    os.replace(path, dest)
 
 
 def parquet_file(path: AnyPath):

@@ -48,6 +48,7 @@ from asp_dist.results.location import (
     S3Path,
     as_path,
     check_bucket,
+    move_aside,
     parquet_dataset,
     parquet_file,
     write_replace,
@@ -209,7 +210,58 @@ def done_cell_ids(sweep_dir: str | AnyPath, strict: bool = False) -> set[str]:
 
 
 def is_done(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> bool:
-    return cell_path(sweep_dir, domain, method, cell_id).exists()
+    """The cell has its file, and the file is a cell's row as write_row leaves it (a damaged one is not done:
+    set_aside_damaged moves it away before the cell trains again)."""
+    path = cell_path(sweep_dir, domain, method, cell_id)
+    return path.exists() and cell_file_problem(path, cells_dir(sweep_dir)) is None
+
+
+# ---- damaged cell files ----------------------------------------------------------------------------
+DAMAGED_DIR = "damaged"  # <sweep>/damaged/<UTC time>/cells/...: files the reader rejected, kept for inspection
+
+
+def damaged_cells(sweep_dir: str | AnyPath, grid: dict[str, tuple[str, str]]) -> dict[str, tuple[AnyPath, str]]:
+    """Cells of `grid` (cell id -> (domain, method)) whose file exists under the cell's own name but is not a
+    cell's row: truncated, empty, holding another cell, or a symbolic link to nothing. cell id -> (path,
+    what is wrong). One listing of cells/ (on S3: no request per cell)."""
+    root = cells_dir(sweep_dir)
+    if not isinstance(root, S3Path) and not root.is_dir():
+        return {}
+    found: dict[str, tuple[AnyPath, str]] = {}
+    for path in root.rglob("*.parquet"):
+        cell = grid.get(path.stem)
+        if cell is None or not visible(path, root) or path != cell_path(sweep_dir, *cell, path.stem):
+            continue  # not a grid cell's own file: the reader warns about strays and never counts them
+        if not isinstance(path, S3Path) and path.is_symlink() and not path.exists():
+            found[path.stem] = (path, "is a symbolic link to nothing")
+            continue
+        problem = cell_file_problem(path, root)
+        if problem is not None:
+            found[path.stem] = (path, problem)
+    return found
+
+
+def set_aside_damaged(sweep_dir: str | AnyPath, grid: dict[str, tuple[str, str]]) -> list[tuple[AnyPath, AnyPath, str]]:
+    """Move every damaged cell file of `grid` (damaged_cells) and its curve into ``damaged/<UTC time>/``, so
+    that the cell trains again and its new row is written once; returns (file, where it went, what was
+    wrong). Run by the sweep's driver under the sweep's lock, before it counts what is done."""
+    damaged = damaged_cells(sweep_dir, grid)
+    if not damaged:
+        return []
+    sweep_dir = as_path(sweep_dir)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    moved = []
+    for cell_id, (path, problem) in sorted(damaged.items()):
+        domain, method = grid[cell_id]
+        for old in (path, curve_path(sweep_dir, domain, method, cell_id)):
+            if old is not path and not old.exists():
+                continue
+            new = sweep_dir / DAMAGED_DIR / stamp / old.relative_to(sweep_dir)
+            move_aside(old, new)
+            if old is path:
+                moved.append((path, new, problem))
+        _CHECKED.pop(str(path), None)
+    return moved
 
 
 # ---- writing -----------------------------------------------------------------------------------

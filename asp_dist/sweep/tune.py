@@ -859,6 +859,11 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
                     store.write_manifest(sweep_dir, manifest)
                 if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch
                     shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers
+                # A cell file the reader rejects (cut short, empty, another cell's, a dangling link) would keep its
+                # cell pending for ever: kept aside for inspection, and the cell trains again.
+                for path, moved_to, problem in store.set_aside_damaged(sweep_dir, {s.cell_id: (s.domain, s.method)
+                                                                                   for s in specs}):
+                    stream.write(f"asp-dist: warning: {path} {problem}: moved to {moved_to}; the cell trains again\n")
                 done, _ = ledger.finished_and_failed(sweep_dir, grid)
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
