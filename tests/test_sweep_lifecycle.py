@@ -187,6 +187,37 @@ def test_embedded_ray_starts_no_dashboard_unless_asked_and_keeps_the_sweeps_sigt
         assert parser.parse_args([*command, "--dashboard"]).dashboard is True
 
 
+def test_a_sigterm_while_ray_starts_reaches_the_sweep_whatever_handler_ray_installs(monkeypatch, tmp_path):
+    """ray.init installs SIGTERM handlers of its own; one that arrives while it runs must still stop the sweep
+    once Ray is up (ray_session holds it), not run Ray's handler inside Ray's code, where it was lost. The fake
+    init installs a handler that swallows the signal, as the lost case did, then is sent a SIGTERM."""
+    from ray._private import utils as ray_utils
+
+    from asp_dist.sweep import tune as sweep_tune
+
+    started = []
+
+    def fake_init(**kwargs):
+        ray_utils.set_sigterm_handler(lambda signum, frame: None)  # what Ray does, in the form that loses it
+        os.kill(os.getpid(), signal.SIGTERM)
+        started.append(True)
+        return type("Context", (), {"dashboard_url": None})()
+
+    monkeypatch.setattr(sweep_tune.ray, "init", fake_init)
+    shut = []
+    monkeypatch.setattr(sweep_tune.ray, "shutdown", lambda: shut.append(True))
+    monkeypatch.setattr(sweep_tune.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(sweep_tune, "prune_ray_sessions", lambda d: [])
+    monkeypatch.setattr(sweep_tune, "_start_reaper", lambda d: None)
+    with ledger.sigterm_as_interrupt():
+        with pytest.raises(KeyboardInterrupt):
+            with sweep_tune.ray_session(2, None, str(tmp_path)):
+                pytest.fail("the sweep went on after a SIGTERM during start-up")
+        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
+    assert started == [True] and shut == [True] and ledger.interrupted_by == signal.SIGTERM
+    assert ray_utils.set_sigterm_handler is not None and "lambda" not in ray_utils.set_sigterm_handler.__name__
+
+
 def test_old_ray_sessions_are_pruned_but_never_one_in_use(tmp_path):
     from asp_dist.sweep.tune import prune_ray_sessions
 
@@ -421,6 +452,45 @@ def test_sigterm_stops_a_running_sweep_promptly_and_resume_finishes_it(tmp_path)
     assert list((sweep_dir / "tune").glob("run-*/*/checkpoint_*")), "no checkpoint was taken"
     staging = sweep_dir / "tune" / ".ckpt-tmp"
     assert not staging.exists() or not any(staging.iterdir()), "staged checkpoints were left behind"
+
+
+def _comm(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return ""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("moment", ["ray-starting", "workers-starting"])
+def test_sigterm_during_start_up_stops_the_sweep(tmp_path, moment):
+    """A SIGTERM while the embedded Ray comes up (its GCS runs, ray.init has not returned) or while Tune starts
+    the first workers stops the sweep as one during training does: exit 143, the one line, no process left
+    (before: one sent while ray.init ran was lost, and the sweep finished with exit 0)."""
+    ray_temp = f"/tmp/asp-ls-{os.getpid()}"
+    driver = start_smoke(tmp_path, ray_temp)
+    want = "gcs_server" if moment == "ray-starting" else "ray::"
+    try:
+        deadline = time.monotonic() + 120
+        while driver.poll() is None and time.monotonic() < deadline and not any(
+                _comm(pid).startswith(want) for pid in session_processes(driver.pid, ray_temp)):
+            time.sleep(0.05)
+        assert driver.poll() is None, "the sweep ended before it could be stopped"
+        driver.send_signal(signal.SIGTERM)
+        try:
+            code = driver.wait(60)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"the sweep did not stop within 60 s of a SIGTERM ({moment})")
+        err = (tmp_path / "driver.err").read_text()
+        assert code == 128 + signal.SIGTERM, err[-3000:]
+        assert "asp-dist: interrupted (SIGTERM)" in err and "Traceback" not in err, err[-3000:]
+        assert not wait_until_gone(driver.pid, ray_temp, 10)
+        assert len(parquet_files(tmp_path / "results" / "smoke")) < 18
+    finally:
+        kill_all(driver.pid, ray_temp)
+        import shutil
+
+        shutil.rmtree(ray_temp, ignore_errors=True)
 
 
 @pytest.mark.slow

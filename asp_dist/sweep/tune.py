@@ -401,9 +401,10 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                 prune_reaper_logs(temp_dir)
                 reaper = _start_reaper(temp_dir)
                 stack.enter_context(loopback_only())
-                context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir,
-                                   _node_ip_address=LOOPBACK, include_dashboard=dashboard, dashboard_host=LOOPBACK,
-                                   object_store_memory=OBJECT_STORE_BYTES, **common)
+                with _signals_held(sigterm):
+                    context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir, _node_ip_address=LOOPBACK,
+                                       include_dashboard=dashboard, dashboard_host=LOOPBACK,
+                                       object_store_memory=OBJECT_STORE_BYTES, **common)
                 if dashboard and context.dashboard_url:
                     (stream or sys.stderr).write(f"Ray dashboard: http://{context.dashboard_url}\n")
         except ConnectionError as e:
@@ -424,6 +425,33 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
         finally:
             _stop_reaper(reaper)
             stack.close()
+
+
+@contextmanager
+def _signals_held(sigterm) -> Iterator[None]:
+    """While the embedded Ray starts: a SIGTERM is held, not lost, and handled once ray.init returns.
+
+    ray.init installs SIGTERM handlers of its own (a driver's sys.exit, a node's drain-then-exit) that a
+    SIGTERM during start-up would run inside Ray's code, where it was seen to vanish (the sweep went on).
+    Here Ray's installer does nothing for the duration, a SIGTERM is only noted, and the sweep's own
+    handler (ledger.sigterm_as_interrupt) gets it as soon as Ray is up: the sweep stops as it does later,
+    with ray_session's cleanup. A no-op off the main thread or without a sweep handler."""
+    if sigterm is None or not callable(sigterm):
+        yield
+        return
+    from ray._private import utils as ray_utils
+
+    held: list[int] = []
+    installer = ray_utils.set_sigterm_handler
+    ray_utils.set_sigterm_handler = lambda handler: None
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        ray_utils.set_sigterm_handler = installer
+        signal.signal(signal.SIGTERM, previous)
+    if held:
+        sigterm(held[0], None)  # raises KeyboardInterrupt: the sweep stops, ray_session shuts Ray down
 
 
 def _token_hint() -> str:
