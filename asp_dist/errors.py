@@ -23,3 +23,16 @@ class StorageError(SweepError):
     """Object storage that cannot be used as asked: an endpoint that does not answer, refused
     credentials, a missing bucket (asp_dist.results.location). One line, exit 2, like any SweepError;
     inside a running cell it is a crash (retried), never a deterministic failure of the cell."""
+
+
+class DiskFull(SweepError):
+    """A write that found no space left (ENOSPC) or no quota (EDQUOT): the sweep stops, finished cells stay,
+    and `resume` continues once there is room. One line, exit 2."""
+
+
+def is_disk_full(err: BaseException) -> bool:
+    """An OSError of a full disk or quota, also as pyarrow words it ("[errno 28] No space left on device")."""
+    import errno
+
+    return isinstance(err, OSError) and (err.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device"
+                                         in str(err) or "Disk quota exceeded" in str(err))

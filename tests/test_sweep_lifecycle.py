@@ -493,6 +493,55 @@ def test_sigterm_during_start_up_stops_the_sweep(tmp_path, moment):
         shutil.rmtree(ray_temp, ignore_errors=True)
 
 
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 640 kB file system (tmpfs; needs root, as CI and the outside tester had): the smoke sweep fills it."""
+    mount = tmp_path / "tiny"
+    mount.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=640k", "tmpfs", str(mount)], capture_output=True)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({made.stderr.decode().strip()})")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+@pytest.mark.slow
+def test_a_full_disk_stops_the_sweep_in_one_line_and_resume_finishes_it(tmp_path, tiny_disk):
+    results = tiny_disk / "results"
+    ray_temp = f"/tmp/asp-lf-{os.getpid()}"
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "asp_dist.cli", *args, "--results", str(results),
+                               "--ray-temp-dir", ray_temp], env=env(), capture_output=True, text=True, timeout=420,
+                              start_new_session=True)
+
+    try:
+        full = run("sweep", "smoke")
+        assert full.returncode == 2, full.stderr[-3000:]
+        errors = [line for line in full.stderr.splitlines() if line.startswith("asp-dist: error:")]
+        assert len(errors) == 1 and "no space left" in errors[0] and str(results / "smoke") in errors[0], full.stderr
+        assert "Traceback" not in full.stderr and len(full.stderr.splitlines()) < 10, full.stderr[-3000:]
+        kept = parquet_files(results / "smoke")
+        assert 0 < len(kept) < 18
+        assert len(store.read_rows(results / "smoke", strict=True)) == len(kept), "a partial file was counted"
+        first = {f: f.stat().st_mtime_ns for f in kept}
+
+        subprocess.run(["mount", "-o", "remount,size=64m", str(tiny_disk)], check=True)
+        resumed = run("resume", "smoke")
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert "Traceback" not in resumed.stderr, resumed.stderr[-3000:]
+        assert "18/18 cells done, 0 failed" in resumed.stdout
+    finally:
+        import shutil
+
+        shutil.rmtree(ray_temp, ignore_errors=True)
+    df = store.read_rows(results / "smoke", strict=True)
+    assert len(df) == 18 and df["cell_id"].is_unique
+    assert all(f.stat().st_mtime_ns == m for f, m in first.items()), "a finished cell was written again"
+
+
 @pytest.mark.slow
 def test_after_a_sigkill_of_the_driver_no_process_of_its_ray_survives(tmp_path):
     ray_temp = f"/tmp/asp-lk-{os.getpid()}"

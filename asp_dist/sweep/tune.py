@@ -37,6 +37,7 @@ directories of the embedded Ray are pruned at start.
 
 from __future__ import annotations
 
+import errno
 import getpass
 import json
 import logging
@@ -68,7 +69,7 @@ from ray import tune  # noqa: E402
 from ray.exceptions import AuthenticationError  # noqa: E402
 
 from asp_dist.data.mnist import MNISTError  # noqa: E402
-from asp_dist.errors import SpecError, StorageError, SweepError  # noqa: E402
+from asp_dist.errors import DiskFull, SpecError, StorageError, SweepError, is_disk_full  # noqa: E402
 from asp_dist.results import store  # noqa: E402
 from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
@@ -101,12 +102,20 @@ log = logging.getLogger(__name__)
 def train_cell(config: dict[str, Any]) -> None:
     """Function trainable. Must keep no state between calls: actors are reused across cells.
 
-    ``config["cell"]`` is one cell's config, or a pack's (it has a ``pack_id``: train_pack)."""
+    ``config["cell"]`` is one cell's config, or a pack's (it has a ``pack_id``: train_pack). A full disk is
+    not a crash to retry: the trial reports it (``disk_full``) and the driver stops the sweep (DiskFullStopper);
+    whatever was being written is a temp file that is removed, never a file that counts."""
     torch.set_num_threads(1)
     config = config["cell"]
-    if "pack_id" in config:
-        train_pack(config)
-        return
+    try:
+        train_pack(config) if "pack_id" in config else _train_one_cell(config)
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or config["sweep_dir"]})
+
+
+def _train_one_cell(config: dict[str, Any]) -> None:
     spec = CellSpec.from_dict(config["spec"])
     sweep_dir = as_path(config["sweep_dir"])
     cell_id = config["cell_id"]
@@ -282,6 +291,10 @@ class SweepCallback(tune.Callback):
         self._counter().update(done=done, failed=failed, running=self._running(trials),
                                last_failure=last_failure(as_path(self.sweep_dir), failed))
 
+    def on_trial_result(self, iteration, trials, trial, result, **info):
+        if result.get(DISK_FULL) and not _DISK_FULL:
+            _DISK_FULL.append(str(result[DISK_FULL]))
+
     def on_step_end(self, iteration, trials, **info):
         self._counter().update(running=self._running(trials))
 
@@ -303,6 +316,34 @@ class SweepCallback(tune.Callback):
                 store.record_failure(sweep_dir, cell_id, domain, method,
                                      f"failed after {trial.num_failures} attempt(s){where}: {error}")
         self._refresh(trials)
+
+
+DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left
+_DISK_FULL: list[str] = []  # this driver's: set by SweepCallback, read by DiskFullStopper and _run
+
+
+class _DiskFullLogFilter(logging.Filter):
+    """Tune logs a failed save of its experiment state with a traceback and goes on; on a full disk that
+    is the sweep's to say, in one line: note it (the sweep stops) instead of printing it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        err = record.exc_info[1] if record.exc_info else None
+        if err is not None and is_disk_full(err):
+            if not _DISK_FULL:
+                _DISK_FULL.append(getattr(err, "filename", None) or "")  # "": somewhere in the sweep
+            return False
+        return True
+
+
+class DiskFullStopper(tune.Stopper):
+    """Stops every trial once one found the disk full: the other cells would fail the same way. (State is
+    this driver process's, _DISK_FULL, so that a restored experiment's unpickled stopper sees it too.)"""
+
+    def __call__(self, trial_id, result) -> bool:
+        return bool(result.get(DISK_FULL))
+
+    def stop_all(self) -> bool:
+        return bool(_DISK_FULL)
 
 
 def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
@@ -731,7 +772,7 @@ def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: boo
         storage_path, storage_fs = _tune_storage(sweep_dir)
         exp_path = f"{storage_path}/{current['experiment']}"
         if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(
-                exp_path, storage_filesystem=storage_fs):
+                exp_path, storage_filesystem=storage_fs) and _state_readable(tune_root / current["experiment"]):
             return current["experiment"], True
         number = int(current["experiment"].rsplit("-", 1)[1]) + 1
     else:
@@ -741,11 +782,29 @@ def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: boo
     return experiment, False
 
 
+def _state_readable(experiment_dir: AnyPath) -> bool:
+    """Tune's newest experiment and search states there are whole JSON. A write cut short (a full disk, a crash of the
+    disk) would make Tune's restore fail with a traceback; the sweep then starts a new experiment instead,
+    and the running cells' checkpoints are lost, not their rows."""
+    try:
+        for pattern in ("experiment_state-*.json", "basic-variant-state-*.json"):  # the trials; the grid's search
+            states = sorted(experiment_dir.glob(pattern), key=lambda p: p.name)
+            if states:
+                json.loads(states[-1].read_text())
+        return True
+    except (OSError, ValueError):
+        log.warning("Tune's state in %s cannot be read; the pending cells start a new experiment", experiment_dir)
+        return False
+
+
 def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], workers: int, max_failures: int,
               checkpoint_every_s: float) -> None:
     # Rows live in Parquet, not in Tune's per-trial logs (disabled above): silence Tune's
     # complaint that it cannot build its own result table from them.
     logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)
+    state_log = logging.getLogger("ray.tune.execution.experiment_state")
+    if not any(isinstance(f, _DiskFullLogFilter) for f in state_log.filters):
+        state_log.addFilter(_DiskFullLogFilter())
     experiment, restore = _tune_experiment(sweep_dir, pending)
     if restore:
         try:
@@ -824,7 +883,7 @@ def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pen
             # num_to_keep=1 also makes Tune save its experiment state after every trial
             # checkpoint, so a killed driver resumes each cell from its latest checkpoint.
             checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-            callbacks=[callback],
+            callbacks=[callback], stop=DiskFullStopper(),
         ),
     )
 
@@ -860,6 +919,25 @@ def resume_sweep(name: str, *, results: str | Path = store.DEFAULT_RESULTS, work
                 checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream, pack, pack_size)
 
 
+@contextmanager
+def _disk_full_is_one_line(sweep_dir: AnyPath, name: str, results: str | Path) -> Iterator[None]:
+    """A full disk, met by a worker (DiskFullStopper) or by this driver, ends the sweep as DiskFull: one line
+    with the path, what is kept and the command that continues. Finished cells are untouched; a write that
+    failed left only a temp file, removed (or a name the reader never counts)."""
+    try:
+        yield
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        where = getattr(e, "filename", None) or sweep_dir
+        try:
+            kept = f"{len(store.done_cell_ids(sweep_dir))} finished cells are kept"
+        except OSError:
+            kept = "finished cells are kept"
+        raise DiskFull(f"no space left on the device of {where}: the sweep stopped, {kept}; free some space, "
+                       f"then: asp-dist resume {name} --results {results}") from None
+
+
 def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, workers: int, address: str | None,
          max_failures: int, checkpoint_every_s: float, ray_temp_dir: str | None, dashboard: bool,
          connect_timeout_s: float, stream: TextIO | None, pack: str | None = None,
@@ -872,7 +950,7 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
         return ray_session(workers, address, ray_temp_dir, dashboard=dashboard, connect_timeout_s=connect_timeout_s,
                            stream=stream)
 
-    with ledger.sigterm_as_interrupt():
+    with ledger.sigterm_as_interrupt(), _disk_full_is_one_line(sweep_dir, name, results):
         if address:  # a cluster that does not answer is refused before anything is written
             ledger.check_sweep_dir_readonly(sweep_dir)
             resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))
@@ -903,8 +981,11 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
                              f"{where}, results in {sweep_dir}\n")
                 if pending:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)
+                    _DISK_FULL.clear()
                     with nullcontext() if address else session():
                         _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
+                    if _DISK_FULL:
+                        raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
                 done, failed = ledger.finished_and_failed(sweep_dir, grid)
                 counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
                 counter.finish()
