@@ -21,7 +21,7 @@ from typing import Any, Sequence
 
 from asp_dist.errors import SpecError
 from asp_dist.results import store
-from asp_dist.results.location import as_path, is_remote
+from asp_dist.results.location import FIRST_ANSWER_ENV, as_path, is_remote
 from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec, coerce_field
 
 
@@ -206,6 +206,8 @@ def check_run_flags(args: argparse.Namespace) -> None:
 
     check_run_options(args.workers, args.max_failures, args.checkpoint_every, args.connect_timeout)
     check_packing(args.pack, args.pack_size)
+    # --connect-timeout also bounds the S3 endpoint's first answer (the other commands: ASP_DIST_S3_TIMEOUT).
+    os.environ.setdefault(FIRST_ANSWER_ENV, str(args.connect_timeout))
     if args.address is not None and not args.address.strip():
         raise SpecError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     if args.address is not None:
@@ -556,8 +558,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="checkpoint interval of a running cell: at most this much work is lost on a crash")
     p.add_argument("--ray-temp-dir", default=None, help="temp dir of the embedded Ray (default /tmp/asp-ray-$USER)")
     p.add_argument("--connect-timeout", type=float, default=20.0, metavar="SECONDS",
-                   help="with --address: give up (exit 2, nothing written) if the cluster does not answer "
-                        "within this time (default 20)")
+                   help="give up (exit 2, nothing written) if the cluster of --address or the S3 endpoint of "
+                        "--results does not answer within this time; also bounds the wait for a silent S3 lease "
+                        "(default 20)")
     p.add_argument("--dashboard", action="store_true",
                    help="start the embedded Ray's dashboard, on 127.0.0.1 only (default: none)")
     p.add_argument("--pack", default=None, metavar="cell|trial|method",

@@ -334,6 +334,55 @@ def test_a_silent_lease_of_another_machine_is_waited_out_and_a_lost_lease_is_tol
     assert json.loads((prefix / "000000000002.json").read_text())["released"] is False  # a lost lease is not written
 
 
+def test_a_lease_that_would_block_for_ever_is_refused_at_once_saying_whose_and_until_when(s3, on_s3, monkeypatch):
+    """A silent lease whose record says it lasts 10^9 s (planted, or another tool's) is not waited for: the
+    run is refused in one line naming the holder and when the lease lapses (before: resume waited for ever)."""
+    from asp_dist.results import store
+    from asp_dist.results.location import as_path
+    from asp_dist.sweep import ledger
+    from asp_dist.sweep.lease import Lease
+    from asp_dist.sweep.spaces import expand
+
+    sweep_dir = as_path(f"{on_s3}/runs") / "smoke"
+    store.write_manifest(sweep_dir, ledger.new_manifest("smoke", "smoke", expand("smoke")))
+    record = {"holder": "pid 7 on far-away since then", "host": "far-away", "pid": 7, "ttl_s": 1e9, "released": False}
+    (sweep_dir / ledger.LEASE_DIR / "000000000001.json").write_bytes(json.dumps(record).encode())
+    # Renewed every 0.1 s, a lease is silent after 0.2 s (asp-dist's own: 5 s and 10 s): no test waits 10 s.
+    monkeypatch.setattr(ledger, "_sweep_lease", lambda d: Lease(d / ledger.LEASE_DIR, renew_s=0.1))
+    while ledger._sweep_lease(sweep_dir).current().age_s <= 0.3:
+        time.sleep(0.1)
+    before = keys(s3, str(sweep_dir))
+    with pytest.raises(ledger.SweepError) as refused:
+        with ledger.sweep_lock(sweep_dir, connect_timeout_s=5):
+            pytest.fail("the lease was taken")
+    message = str(refused.value)
+    assert "held by pid 7 on far-away" in message and "lapses only in 99999" in message, message
+    assert f"{ledger.lease_wait_bound_s(5):.0f} s this run waits" in message and "delete" in message
+    assert keys(s3, str(sweep_dir)) == before, "the refused run wrote to the bucket"
+
+
+def test_an_endpoint_that_accepts_but_never_answers_is_given_up_on(s3, tmp_path):
+    """status, query and sweep against an S3 endpoint that takes the TCP connection and never answers end in
+    one line within ASP_DIST_S3_TIMEOUT (sweep: --connect-timeout), not after the SDKs' 4 x 60 s of retries."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(64)
+    endpoint = f"http://127.0.0.1:{server.getsockname()[1]}"
+    try:
+        for command, extra in ((["status", "smoke"], {"ASP_DIST_S3_TIMEOUT": "2"}),
+                               (["query", "smoke", "--sql", "SELECT 1"], {"ASP_DIST_S3_TIMEOUT": "2"}),
+                               (["sweep", "smoke", "--connect-timeout", "2"], {})):
+            proc = subprocess.run([sys.executable, "-m", "asp_dist.cli", *command, "--results", f"s3://{BUCKET}/x"],
+                                  env=dict(s3.env, AWS_ENDPOINT_URL=endpoint, **extra), capture_output=True, text=True,
+                                  timeout=120, cwd=tmp_path)
+            assert proc.returncode == 2, (command, proc.stderr[-2000:])
+            assert proc.stderr.startswith(f"asp-dist: error: no answer from the S3 endpoint {endpoint}"), proc.stderr
+            assert "within 2 s" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    finally:
+        server.close()
+    assert not list(tmp_path.iterdir())
+
+
 BASE = """import hashlib, json, sys, time
 import asp_dist.sweep.base_cache as cache
 import asp_dist.training.bases as bases

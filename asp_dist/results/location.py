@@ -33,6 +33,7 @@ import fnmatch
 import os
 import re
 import threading
+import time
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path, PurePosixPath
@@ -125,6 +126,19 @@ def filesystem(config: S3Config | None = None) -> pafs.S3FileSystem:
     return held["fs"]
 
 
+def _probe_filesystem(config: S3Config, timeout_s: float) -> pafs.S3FileSystem:
+    """An S3 filesystem whose requests give up after `timeout_s` without a retry (the first contact)."""
+    import pyarrow.fs as pafs
+
+    kwargs: dict[str, Any] = {}
+    if config.endpoint:
+        parts = urlsplit(config.endpoint)
+        kwargs = {"endpoint_override": parts.netloc, "scheme": parts.scheme}
+    return pafs.S3FileSystem(region=config.region, connect_timeout=min(CONNECT_TIMEOUT_S, timeout_s),
+                             request_timeout=timeout_s, retry_strategy=pafs.AwsStandardS3RetryStrategy(max_attempts=1),
+                             **kwargs)
+
+
 def client(config: S3Config | None = None):
     """A boto3 S3 client for the configured endpoint (one per process): conditional PUTs and leases."""
     held = _clients(config)
@@ -196,24 +210,69 @@ def _is_not_found(err: BaseException) -> bool:
     return isinstance(err, FileNotFoundError) or "Path does not exist" in str(err)
 
 
+FIRST_ANSWER_ENV = "ASP_DIST_S3_TIMEOUT"  # the S3 twin of --connect-timeout (which sweep and resume apply too)
+DEFAULT_FIRST_ANSWER_S = 20.0
+
+
+def first_answer_timeout_s() -> float:
+    """Seconds the endpoint has to answer the first request of a command (check_bucket): an endpoint that
+    accepts connections and never answers would otherwise hold a command for the SDKs' retries (4 x 60 s)."""
+    try:
+        value = float(os.environ.get(FIRST_ANSWER_ENV, DEFAULT_FIRST_ANSWER_S))
+    except ValueError:
+        raise StorageError(f"{FIRST_ANSWER_ENV}={os.environ[FIRST_ANSWER_ENV]!r} is not a number of seconds") from None
+    if not value > 0 or value != value or value == float("inf"):
+        raise StorageError(f"{FIRST_ANSWER_ENV} must be > 0 seconds and finite, got {value}")
+    return value
+
+
 def check_bucket(path: S3Path) -> None:
-    """Refuse, in one line, an endpoint that does not answer, refused credentials or a missing bucket,
-    before anything is read or written (once per process and bucket). An existing bucket is never created."""
+    """Refuse, in one line, an endpoint that does not answer (within first_answer_timeout_s), refused
+    credentials or a missing bucket, before anything is read or written (once per process and bucket). An
+    existing bucket is never created."""
     config = S3Config.from_env()
     if (config, path.bucket) in _BUCKETS_CHECKED:
         return
     import pyarrow.fs as pafs
 
-    try:
-        info = filesystem(config).get_file_info(path.bucket)
+    timeout_s = first_answer_timeout_s()
+
+    def probe() -> None:
+        # Its own filesystem, one attempt, each request bounded by the timeout: no request is left hanging
+        # (pyarrow's S3 shutdown at exit would wait for it).
+        fs = _probe_filesystem(config, timeout_s)
+        info = fs.get_file_info(path.bucket)
         if info.type == pafs.FileType.NotFound:
             raise StorageError(f"bucket {path.bucket!r} does not exist at {config.describe()}; create it first "
                                f"(asp-dist never creates buckets)")
         # HeadBucket succeeds for some stores without the right to list; a listing is what every command needs.
-        filesystem(config).get_file_info(pafs.FileSelector(f"{path.bucket}/{path.key}".rstrip("/"),
-                                                           allow_not_found=True, recursive=False))
-    except OSError as err:
-        raise storage_error(err, str(path), config) from None
+        fs.get_file_info(pafs.FileSelector(f"{path.bucket}/{path.key}".rstrip("/"), allow_not_found=True,
+                                           recursive=False))
+
+    started = time.monotonic()
+    answer: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            probe()
+            answer.append(None)
+        except BaseException as err:  # noqa: BLE001 - handed to the caller's thread
+            answer.append(err)
+
+    worker = threading.Thread(target=run, name="asp-s3-first-answer", daemon=True)
+    worker.start()
+    worker.join(2 * timeout_s + 5)  # a backstop: the probe's own timeouts end it first
+    silent = f"no answer from the S3 endpoint {config.describe()} for {path} within {timeout_s:g} s; check " \
+             f"AWS_ENDPOINT_URL, or raise --connect-timeout ({FIRST_ANSWER_ENV})"
+    if not answer:
+        raise StorageError(silent)
+    if isinstance(answer[0], OSError):
+        err = storage_error(answer[0], str(path), config)
+        if "cannot reach" in str(err) and time.monotonic() - started >= timeout_s:
+            raise StorageError(silent) from None  # it took the connection and said nothing
+        raise err from None
+    if answer[0] is not None:
+        raise answer[0]
     _BUCKETS_CHECKED.add((config, path.bucket))
 
 

@@ -26,7 +26,7 @@ import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -263,15 +263,33 @@ def _sweep_lease(sweep_dir: S3Path):
     return Lease(sweep_dir / LEASE_DIR, on_lost=lost)
 
 
+def lease_wait_bound_s(connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> float:
+    """How long a run waits for a silent lease to lapse: as long as a lease asp-dist writes can outlive its
+    holder (LEASE_TTL_S), or the connect timeout if that is longer. A lease that says it lasts longer
+    (a planted or foreign ttl_s) is refused at once, with whose it is and until when, never waited for."""
+    from asp_dist.sweep.lease import LEASE_TTL_S
+
+    return max(float(connect_timeout_s), LEASE_TTL_S + 2.0)
+
+
 @contextmanager
-def _remote_sweep_lock(sweep_dir: S3Path, grace_s: float) -> Iterator[None]:
+def _remote_sweep_lock(sweep_dir: S3Path, grace_s: float,
+                       connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> Iterator[None]:
     lease = _sweep_lease(sweep_dir)
     deadline = time.monotonic() + grace_s
+    bound = lease_wait_bound_s(connect_timeout_s)
     told = False
     while (busy := lease.try_acquire()) is not None:
         silent = busy.age_s > 2 * lease.renew_s  # not renewed for two intervals: its driver is most likely dead
         if silent:  # (killed on another machine): wait for its lease to lapse rather than refuse
             left = float(busy.record.get("ttl_s", lease.ttl_s)) - busy.age_s
+            if not told and left + 2.0 > bound:
+                until = ((datetime.now(timezone.utc) + timedelta(seconds=left)).isoformat(timespec="seconds")
+                         if left < 3e9 else "in a century or more")  # beyond that a date is noise
+                raise SweepError(
+                    f"sweep {sweep_dir.name!r} is held by {busy.record.get('holder', 'another run')}, silent for "
+                    f"{busy.age_s:.0f} s, whose lease lapses only in {left:.0f} s ({until}), beyond the {bound:.0f} s "
+                    f"this run waits; if that run is dead, delete {lease.prefix}/ and run again")
             deadline = max(deadline, time.monotonic() + left + 2.0)
             if not told:
                 print(f"asp-dist: sweep {sweep_dir.name!r}: waiting up to {max(left, 0):.0f} s for the silent lease of "
@@ -288,13 +306,14 @@ def _remote_sweep_lock(sweep_dir: S3Path, grace_s: float) -> Iterator[None]:
 
 
 @contextmanager
-def sweep_lock(sweep_dir: AnyPath, grace_s: float = LOCK_GRACE_S) -> Iterator[None]:
+def sweep_lock(sweep_dir: AnyPath, grace_s: float = LOCK_GRACE_S,
+               connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> Iterator[None]:
     """Refuse a second concurrent run of one sweep. fcntl: the OS drops the lock when its holder dies,
     even by SIGKILL, so a crashed run never blocks the resume. Retried for ``grace_s`` so that a
     `status` probing the lock at that moment (lock_holder) never makes the run refuse. On S3: a lease
     (asp_dist.sweep.lease), created by a conditional PUT and renewed while the run lasts."""
     if isinstance(sweep_dir, S3Path):
-        with _remote_sweep_lock(sweep_dir, grace_s):
+        with _remote_sweep_lock(sweep_dir, grace_s, connect_timeout_s):
             yield
         return
     fh = open(sweep_dir / LOCK_FILE, "a+")

@@ -958,7 +958,7 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
         # A cluster is joined before the sweep dir is written; the embedded Ray starts only if a cell is pending.
         with session() if address else nullcontext():
             ledger.check_sweep_dir(sweep_dir)
-            with ledger.sweep_lock(sweep_dir):
+            with ledger.sweep_lock(sweep_dir, connect_timeout_s=connect_timeout_s):
                 packing = resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))  # refuses another one
                 manifest = ledger.check_manifest(sweep_dir, name, specs, space, packing)  # refuses a different grid
                 if store.read_manifest(sweep_dir) is None:
