@@ -17,6 +17,7 @@ import torch
 from budgets import TINY
 
 from asp_dist.domains import get_domain
+from asp_dist.domains.levers import AGENTS
 from asp_dist.spec import CellSpec
 from asp_dist.training.methods import method_weights
 from asp_dist.training.packed import PACKED, driver, packed_module
@@ -71,6 +72,104 @@ def trainer_class(domain: str) -> type:
     return run_pack.args[0]
 
 
+# ---- tolerances: float32 rounding ----------------------------------------------------------------
+# A packed trainer computes the reference's update in another order (batched matmuls, hand-derived
+# backward passes, fused Adam), and each CPU's kernels (AVX-512, AVX2, scalar: ATEN_CPU_CAPABILITY)
+# order sums their own way, so the two agree up to float32 rounding only. A gradient element is a sum
+# over the batch rows of products that each pass back through a layer's width: rows × width terms
+# at most, and a float32 sum of n terms is within n·u·Σ|terms| of exact (u = 2**-24, the unit
+# roundoff). float32_tol takes max|g| for Σ|terms|; ROUNDING_C covers that ratio and the drift of
+# the point each gradient is taken at after earlier steps. Parameters: AdamDrift (Adam's step is
+# lr·m̂/(√v̂+ε), so a gradient difference moves it in proportion to lr).
+# Measured 2026-12-01 on an Intel Xeon (AVX-512; ATEN_CPU_CAPABILITY unset, avx2 and default, the
+# four test_packed*.py files): gradients at most 0.40·n·u·max|g| (a particle OSP cell under
+# "default"), hence ROUNDING_C = 4, a safety factor of 10; agents' parameters at most 0.92 of
+# AdamDrift's bound (a parameter one ulp apart after the first step), hence DRIFT_SAFETY = 2;
+# discriminators at most 0.03 of theirs. They still fail on a real mismatch: the particle trainer's
+# speaker gradient scaled by 1.01 (or 1.001) fails 11 (10) of 11 single-cell cases, an Adam learning
+# rate off by 1% fails every single-cell case at its first update.
+U32 = 2.0 ** -24
+ROUNDING_C = 4.0
+BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults: every optimiser here
+DRIFT_SAFETY = 2.0  # on AdamDrift's first-order bound
+
+
+def float32_tol(expected: torch.Tensor, terms: int, c: float = ROUNDING_C) -> float:
+    """Absolute tolerance for `expected` recomputed in float32 in another order: c·n·u·max|expected|
+    (n = `terms`, the longest chain of accumulated terms behind an element). 0 for an all-zero
+    `expected` (no update): then the other computation must give exact zeros too."""
+    return c * terms * U32 * float(expected.abs().max()) if expected.numel() else 0.0
+
+
+def adam_ratio_bound(t: int) -> float:
+    """R_t ≥ |m̂|/√v̂ after t Adam steps (Cauchy-Schwarz over the two moving averages' weights): 1
+    at the first step, 1.03 at 8, 1.76 at 60."""
+    b1, b2 = BETAS
+    return sum(((1 - b1) * b1 ** k / (1 - b1 ** t)) ** 2 / ((1 - b2) * b2 ** k / (1 - b2 ** t))
+               for k in range(t)) ** 0.5
+
+
+class AdamDrift:
+    """Element-wise bound on how far two copies of parameters get apart when Adam steps them from one
+    start with gradients that differ by `err` (element-wise, as measured, or a float32_tol bound).
+    Adam's step is lr·m̂/(√v̂+ε); m̂ and √v̂ are weighted means over the steps (of g, and an L2 norm of
+    g), so each moves by at most the largest gradient difference so far, e, and the step by at most
+    lr·(1+R)·e/(√v̂+ε) (first order; R = adam_ratio_bound), never more than 2·lr·R. Each copy also
+    rounds its new parameter (≤ u·|θ|) and its step (a few u of it). So the bound scales with lr: a
+    small part of a step where the gradient is well above its difference, up to a whole step where
+    it is not. √v̂ is read from an optimiser's state after the step (`adam_sqrt_v`, `stacked_sqrt_v`)."""
+
+    def __init__(self, lr: float):
+        self.lr, self.err, self.tol = lr, torch.zeros(()), torch.zeros(())
+
+    def add(self, sqrt_v: torch.Tensor, t: int, theta: torch.Tensor, *, err: torch.Tensor | float,
+            steps: int = 1) -> AdamDrift:
+        """Account for `steps` Adam steps (the t-th and those just before it)."""
+        self.err = torch.maximum(self.err, torch.as_tensor(err, dtype=torch.float32))
+        r = adam_ratio_bound(t)
+        step = self.lr * (torch.clamp((1 + r) * self.err / (sqrt_v + EPS), max=2 * r) + 8 * U32 * r)
+        self.tol = self.tol + steps * (step + 2 * U32 * theta.abs())
+        return self
+
+    def close(self, got: torch.Tensor, expected: torch.Tensor) -> bool:
+        return bool(((got - expected).abs() <= DRIFT_SAFETY * self.tol).all())
+
+
+def disc_grad_tol(s: CellSpec, discs, sqrt_v: torch.Tensor, t: int) -> float:
+    """float32_tol of a member's discriminators' gradient, which the tests do not see (the reference
+    adds the model loss's to it): n = the real and fake rows (2·unpaired_batch) × the discriminators'
+    widest layer, the scale bounded from Adam's √v̂, |g_t| ≤ √v̂·√((1-β2^t)/(1-β2))."""
+    terms = 2 * s.unpaired_batch * max(max(p.shape) for d in discs for p in d.parameters())
+    return float32_tol(sqrt_v * ((1 - BETAS[1] ** t) / (1 - BETAS[1])) ** 0.5, terms) if t else 0.0
+
+
+def adam_sqrt_v(module: torch.nn.Module, *optimizers: torch.optim.Optimizer) -> tuple[torch.Tensor, int]:
+    """Adam's bias-corrected √v̂ of `module`'s parameters (flat, in parameters() order; 0 before their
+    first step) from the torch optimisers holding them, and their step count."""
+    states = {p: st for opt in optimizers for p, st in opt.state.items()}
+    out, t = [torch.zeros(0)], 0
+    for p in module.parameters():
+        st = states.get(p, {})
+        if "exp_avg_sq" in st:
+            t = int(st["step"])
+            out.append((st["exp_avg_sq"] / (1 - BETAS[1] ** t)).sqrt().reshape(-1))
+        else:
+            out.append(torch.zeros(p.numel()))
+    return torch.cat(out), t
+
+
+def stacked_sqrt_v(net, rows: list[int]) -> tuple[torch.Tensor, int]:
+    """The same from a pack's StackedParams, for its member rows `rows` (flat, concatenated)."""
+    t = int(net.steps)
+    v = torch.cat([torch.zeros(0)] + [net.member_flat(k, net.exp_avg_sq) for k in rows])
+    return (v / (1 - BETAS[1] ** t)).sqrt() if t else v, t
+
+
+def _rows(s: CellSpec) -> int:
+    """Rows of the largest batch an update reduces over (self-play, paired or unpaired)."""
+    return max(s.batch_size, s.unpaired_batch or 0, s.paired)
+
+
 _DATA: dict[tuple, tuple[dict, dict]] = {}  # PackCase.member_data's draws
 
 
@@ -87,6 +186,15 @@ class PackCase:
     # member i's self-play state in a pack, and the reference Trainer's (the same tensors; [] for none)
     pack_state: Callable[[Any, int], list[torch.Tensor]] = _no_state
     trainer_state: Callable[[Trainer], list[torch.Tensor]] = _no_state
+    rows: Callable[[CellSpec], int] = _rows  # rows of the largest batch of an update (grad_terms)
+
+    def grad_terms(self, s: CellSpec, agents: torch.nn.Module) -> int:
+        """n of float32_tol for a member's gradients: batch rows × the widest layer its gradient
+        passes (the agents' widest weight dimension, the discriminator's width when it has one)."""
+        width = max(max(p.shape) for p in agents.parameters())
+        if method_weights(s).needs_adversary:
+            width = max(width, s.disc_hidden)
+        return self.rows(s) * width
 
     def spec(self, **changes) -> CellSpec:
         return CellSpec(**{"domain": self.domain, **self.small, **changes}).resolved()
@@ -151,6 +259,7 @@ PARTICLES = PackCase(
     # the envs' positions: the same actions were sampled
     pack_state=lambda pack, i: [pack.pos[i]],
     trainer_state=lambda t: [t.sp_state["pos"]] if t.sp_state else [],
+    rows=lambda s: max(s.batch_size * s.particles_rollout_len, s.unpaired_batch, s.paired),  # envs × steps
 )
 
 LEVERS = PackCase(
@@ -192,6 +301,8 @@ LEVERS = PackCase(
     pack_state=lambda pack, i: [torch.tensor([pack.pos, pack.filled]), pack.r_ids[i], pack.r_lev[i], pack.r_rew[i]],
     trainer_state=lambda t: [torch.tensor([int(t.sp_state["pos"]), int(t.sp_state["filled"])]), t.sp_state["ids"],
                              t.sp_state["levers"], t.sp_state["reward"]] if t.sp_state else [],
+    # a DQN update: batch_size fresh and batch_size replayed games, AGENTS seats each
+    rows=lambda s: max(2 * s.batch_size * AGENTS, s.unpaired_batch, s.paired * AGENTS),
 )
 
 VAE = PackCase(

@@ -11,7 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 from budgets import tiny_spec
-from packed_cases import VAE, disc_params, flat_grads, flat_params
+from packed_cases import (VAE, AdamDrift, adam_sqrt_v, disc_grad_tol, disc_params, flat_grads, flat_params,
+                          float32_tol, stacked_sqrt_v)
 
 from asp_dist.domains import get_domain
 from asp_dist.training.cell import choose_trainer
@@ -21,10 +22,7 @@ from asp_dist.training.packed import packed_module
 from asp_dist.training.packed.vae import IMPLEMENTED, PackedVAETrainer, pack_key, supports
 
 DOMAIN = get_domain("vae")
-# Weights: largest difference / largest weight, after the first update and after a whole tiny training
-# (Adam's steps amplify rounding where a gradient is near 0). Measured: 3e-8 after one update, 5e-7
-# after 20 (an absolute 2.6e-7 in a PC member's decoder); gradients 2e-7, losses and curves 3e-7.
-PARAM_REL_FIRST, PARAM_REL_END = 1e-6, 1e-5
+# Gradients and weights agree up to float32 rounding: packed_cases.float32_tol and AdamDrift.
 LOSS_REL = 1e-5
 
 # Packs of different methods and knob values (members share the fields in SHARED, so the
@@ -53,27 +51,41 @@ PACKS = {
 
 
 def pack_and_singles(changes: list[dict], **common):
-    """A pack of `changes` and each member's single-cell trainer (run_cell's: the one-pass trainer),
-    from the same data and initial weights."""
+    """A pack of `changes`, each member's single-cell trainer (run_cell's: the one-pass trainer), from
+    the same data and initial weights, and each single's Drift."""
     specs = [VAE.spec(**c, **common) for c in changes]
     data = [VAE.member_data(s) for s in specs]
     pack = VAE.make_pack(specs, data)
     singles = [OnePassVAETrainer(s, DOMAIN, DOMAIN.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
                for s, (p, u) in zip(specs, data)]
-    return specs, pack, singles
+    return specs, pack, singles, [Drift(single) for single in singles]
 
 
-def rel_diff(got: torch.Tensor, expected: torch.Tensor) -> float:
-    if expected.numel() == 0:
-        return 0.0
-    return float((got - expected).abs().max() / expected.abs().max().clamp_min(1e-12))
+class Drift:
+    """How far float rounding can take a pack member's weights from its single trainer's
+    (packed_cases.AdamDrift, from the single's Adam state): `step` after each of the single's updates,
+    with the member's gradient in the pack."""
+
+    def __init__(self, single):
+        s, self.single = single.spec, single
+        self.terms = VAE.grad_terms(s, single.agents)
+        self.agents, self.disc = AdamDrift(s.lr), AdamDrift(s.disc_lr)
+
+    def step(self, pack_grad: torch.Tensor) -> None:
+        single, s = self.single, self.single.spec
+        self.agents.add(*adam_sqrt_v(single.agents, single.opt), flat_params(single.agents),
+                        err=(pack_grad - flat_grads(single.agents)).abs())
+        if single.adversaries is not None:
+            sqrt_v, t = adam_sqrt_v(single.adversaries, *single.adversaries.optims.values())
+            err = disc_grad_tol(s, single.adversaries.discs.values(), sqrt_v, t)
+            self.disc.add(sqrt_v, t, flat_params(single.adversaries), err=err, steps=s.disc_steps)
 
 
-def assert_member_matches(pack, i: int, single, what: str, *, at_end: bool) -> None:
-    tol = PARAM_REL_END if at_end else PARAM_REL_FIRST
-    assert rel_diff(flat_params(pack.members[i].agents), flat_params(single.agents)) <= tol, f"{what}: weights"
+def assert_member_matches(pack, i: int, drift: Drift, what: str, *, at_end: bool) -> None:
+    single = drift.single
+    assert drift.agents.close(flat_params(pack.members[i].agents), flat_params(single.agents)), f"{what}: weights"
     if single.adversaries is not None:
-        assert rel_diff(disc_params(pack.members[i]), flat_params(single.adversaries)) <= tol, \
+        assert drift.disc.close(disc_params(pack.members[i]), flat_params(single.adversaries)), \
             f"{what}: discriminator"
     if at_end:  # (the pack draws a chunk of updates ahead: its generators meet the single cell's at the end)
         assert torch.equal(pack.members[i].gen.get_state(), single.gen.get_state()), f"{what}: the draws differ"
@@ -81,29 +93,31 @@ def assert_member_matches(pack, i: int, single, what: str, *, at_end: bool) -> N
 
 @pytest.mark.parametrize("name", PACKS)
 def test_first_update_equals_the_one_pass_trainer_member_by_member(name):
-    specs, pack, singles = pack_and_singles(PACKS[name], train_steps=20)
+    specs, pack, singles, drifts = pack_and_singles(PACKS[name], train_steps=20)
     pack.train_step()
-    for i, single in enumerate(singles):
+    for i, (single, drift) in enumerate(zip(singles, drifts)):
         single.train_step()
-        what = f"member {i} ({specs[i].method}, {PACKS[name][i]})"
         expected, got = flat_grads(single.agents), pack.net.member_flat(i, pack.net.grad)
-        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6 * max(float(expected.abs().max()), 1e-3),
+        drift.step(got)
+        what = f"member {i} ({specs[i].method}, {PACKS[name][i]})"
+        torch.testing.assert_close(got, expected, rtol=0, atol=float32_tol(expected, drift.terms),
                                    msg=f"{what}: gradient")
-        assert_member_matches(pack, i, single, what, at_end=False)
+        assert_member_matches(pack, i, drift, what, at_end=False)
 
 
 @pytest.mark.parametrize("name", PACKS)
 def test_whole_tiny_training_equals_the_one_pass_trainer(name):
     """20 updates: every update a curve point, the final window the last 2; loss columns, curves,
     final weights (the VAE's and the discriminator's) and the generators."""
-    specs, pack, singles = pack_and_singles(PACKS[name], train_steps=20)
+    specs, pack, singles, drifts = pack_and_singles(PACKS[name], train_steps=20)
     for _ in range(20):
         pack.train_step()
-        for single in singles:
+        for i, (single, drift) in enumerate(zip(singles, drifts)):
             single.train_step()
+            drift.step(pack.net.member_flat(i, pack.net.grad))
     for i, single in enumerate(singles):
         what = f"member {i} ({specs[i].method}, {PACKS[name][i]})"
-        assert_member_matches(pack, i, single, what, at_end=True)
+        assert_member_matches(pack, i, drifts[i], what, at_end=True)
         expected, got = single.loss_columns(), pack.loss_columns(i)
         assert expected.keys() == got.keys()
         for key, value in expected.items():
@@ -124,20 +138,27 @@ def test_a_member_does_not_depend_on_its_pack_mates():
              [dict(method="asp", paired=1, trial=2, adversary_loss="non_saturating", unpaired_size=30),
               dict(method="osp", paired=0, trial=3, vae_kl_weight=0.2), me,
               dict(method="asp", paired=6, trial=4, lambda_unpaired_schedule="warmup")]]
-    runs = []
-    for changes in packs:
-        specs = [VAE.spec(**c, train_steps=20) for c in changes]
-        pack = VAE.make_pack(specs)
-        for _ in range(20):
+    runs = [VAE.make_pack([VAE.spec(**c, train_steps=20) for c in changes]) for changes in packs]
+    rows = [changes.index(me) for changes in packs]
+    (alone, *_), s = runs[0].members, runs[0].members[0].spec
+    # how far rounding can take the others from alone (packed_cases.AdamDrift, from alone's Adam state)
+    drifts = [(AdamDrift(s.lr), AdamDrift(s.disc_lr)) for _ in packs[1:]]
+    for _ in range(20):
+        for pack in runs:
             pack.train_step()
-        i = changes.index(me)
-        runs.append((pack.members[i], pack.loss_columns(i)))
-    (alone, alone_losses), *others = runs
-    for member, losses in others:
+        grad, (sqrt_v, t) = runs[0].net.member_flat(0, runs[0].net.grad), stacked_sqrt_v(runs[0].dnet, [0])
+        for (drift, disc_drift), pack, i in zip(drifts, runs[1:], rows[1:]):
+            drift.add(*stacked_sqrt_v(runs[0].net, [0]), flat_params(alone.agents),
+                      err=(pack.net.member_flat(i, pack.net.grad) - grad).abs())
+            disc_drift.add(sqrt_v, t, disc_params(alone), err=disc_grad_tol(s, alone.discs, sqrt_v, t),
+                           steps=s.disc_steps)
+    alone_losses = runs[0].loss_columns(0)
+    for (drift, disc_drift), pack, i in zip(drifts, runs[1:], rows[1:]):
+        member = pack.members[i]
         assert torch.equal(member.gen.get_state(), alone.gen.get_state())
-        assert rel_diff(flat_params(member.agents), flat_params(alone.agents)) <= PARAM_REL_END
-        assert rel_diff(disc_params(member), disc_params(alone)) <= PARAM_REL_END
-        assert losses == pytest.approx(alone_losses, rel=LOSS_REL)
+        assert drift.close(flat_params(member.agents), flat_params(alone.agents)), "weights"
+        assert disc_drift.close(disc_params(member), disc_params(alone)), "discriminator"
+        assert pack.loss_columns(i) == pytest.approx(alone_losses, rel=LOSS_REL)
 
 
 def test_mates_with_other_knob_values_change_nothing_at_one_shape():
@@ -169,11 +190,13 @@ def test_a_pc_member_is_not_harmed_by_the_self_play_rows_it_rides_along_in():
             vae.encoder[2].bias[vae.latent_dim:] = 400.0  # log σ² = 400 on every input
     pack = PackedVAETrainer(specs, [d[0] for d in data], [d[1] for d in data], agents)
     single = OnePassVAETrainer(specs[1], DOMAIN, single_agents, *data[1], method_weights(specs[1]))
+    drift = Drift(single)
     for _ in range(3):
         pack.train_step()
         single.train_step()
+        drift.step(pack.net.member_flat(1, pack.net.grad))
     assert not any(m.failed for m in pack.members)
-    assert rel_diff(flat_params(pack.members[1].agents), flat_params(single.agents)) <= PARAM_REL_FIRST
+    assert drift.agents.close(flat_params(pack.members[1].agents), flat_params(single.agents))
 
 
 def test_what_can_share_a_pack():
