@@ -21,7 +21,7 @@ from typing import Any, Sequence
 
 from asp_dist.errors import SpecError
 from asp_dist.results import store
-from asp_dist.results.location import FIRST_ANSWER_ENV, as_path, is_remote
+from asp_dist.results.location import as_path, first_answer_within, is_remote
 from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec, coerce_field
 
 
@@ -123,10 +123,10 @@ def cmd_cell(args: argparse.Namespace) -> int:
 
 def write_single_row(row: dict[str, Any], out: Path) -> None:
     """One row to a new Parquet file with the store's pinned schema, written atomically."""
-    from asp_dist.fsutil import write_table_once
+    from asp_dist.fsutil import link_table_once
     from asp_dist.training.row import row_table
 
-    if not write_table_once(row_table(row), out):
+    if not link_table_once(row_table(row), out):
         raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
 
 
@@ -206,8 +206,6 @@ def check_run_flags(args: argparse.Namespace) -> None:
 
     check_run_options(args.workers, args.max_failures, args.checkpoint_every, args.connect_timeout)
     check_packing(args.pack, args.pack_size)
-    # --connect-timeout also bounds the S3 endpoint's first answer (the other commands: ASP_DIST_S3_TIMEOUT).
-    os.environ.setdefault(FIRST_ANSWER_ENV, str(args.connect_timeout))
     if args.address is not None and not args.address.strip():
         raise SpecError("--address is empty; give HOST:PORT of a Ray cluster or leave it out")
     if args.address is not None:
@@ -249,7 +247,8 @@ def _interruptible(args: argparse.Namespace, name_of, run) -> int:
 
     from asp_dist.sweep import ledger
 
-    with ledger.sigterm_as_interrupt():
+    # --connect-timeout also bounds the S3 endpoint's first answer (the other commands: ASP_DIST_S3_TIMEOUT).
+    with ledger.sigterm_as_interrupt(), first_answer_within(args.connect_timeout):
         try:
             return run()
         except (KeyboardInterrupt, SystemExit) as e:

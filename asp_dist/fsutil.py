@@ -10,7 +10,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 
-def write_table_once(table: pa.Table, final: Path) -> bool:
+def link_table_once(table: pa.Table, final: Path) -> bool:
     """Write `table` to `final` through a hidden temp file and an atomic link; never overwrites.
     Returns False (and writes nothing) if `final` already exists."""
     final = Path(final)

@@ -34,6 +34,7 @@ import os
 import re
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path, PurePosixPath
@@ -214,9 +215,24 @@ FIRST_ANSWER_ENV = "ASP_DIST_S3_TIMEOUT"  # the S3 twin of --connect-timeout (wh
 DEFAULT_FIRST_ANSWER_S = 20.0
 
 
+_FIRST_ANSWER_S: list[float] = []  # set by first_answer_within (sweep and resume: --connect-timeout)
+
+
+@contextmanager
+def first_answer_within(seconds: float) -> Iterator[None]:
+    """Within: the endpoint's first answer is awaited `seconds` (a command's flag, over the environment's)."""
+    _FIRST_ANSWER_S.append(float(seconds))
+    try:
+        yield
+    finally:
+        _FIRST_ANSWER_S.pop()
+
+
 def first_answer_timeout_s() -> float:
     """Seconds the endpoint has to answer the first request of a command (check_bucket): an endpoint that
     accepts connections and never answers would otherwise hold a command for the SDKs' retries (4 x 60 s)."""
+    if _FIRST_ANSWER_S:
+        return _FIRST_ANSWER_S[-1]
     try:
         value = float(os.environ.get(FIRST_ANSWER_ENV, DEFAULT_FIRST_ANSWER_S))
     except ValueError:
@@ -533,9 +549,9 @@ def write_table_once(table: pa.Table, final: AnyPath) -> bool:
     local disk (asp_dist.fsutil), a conditional PUT on S3."""
     if isinstance(final, S3Path):
         return final.create(parquet_bytes(table))
-    from asp_dist.fsutil import write_table_once as local_write_once
+    from asp_dist.fsutil import link_table_once
 
-    return local_write_once(table, final)
+    return link_table_once(table, final)
 
 
 def write_replace(path: AnyPath, data: bytes | str) -> None:

@@ -410,9 +410,12 @@ def _session_token() -> str:
     return _TOKEN[0]
 
 
+RAY_TEMP_ENV = "ASP_DIST_RAY_TEMP_DIR"  # the default of --ray-temp-dir (the test suite sets one per xdist worker)
+
+
 def default_ray_temp_dir() -> str:
     """Short (Unix sockets live under it, ~107-char limit) and per user, never a bare /tmp/ray."""
-    return f"/tmp/asp-ray-{getpass.getuser()}"
+    return os.environ.get(RAY_TEMP_ENV) or f"/tmp/asp-ray-{getpass.getuser()}"
 
 
 @contextmanager
@@ -783,14 +786,13 @@ def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: boo
 
 
 def _state_readable(experiment_dir: AnyPath) -> bool:
-    """Tune's newest experiment and search states there are whole JSON. A write cut short (a full disk, a crash of the
+    """Tune's newest experiment state there is whole JSON. A write cut short (a full disk, a crash of the
     disk) would make Tune's restore fail with a traceback; the sweep then starts a new experiment instead,
     and the running cells' checkpoints are lost, not their rows."""
-    try:
-        for pattern in ("experiment_state-*.json", "basic-variant-state-*.json"):  # the trials; the grid's search
-            states = sorted(experiment_dir.glob(pattern), key=lambda p: p.name)
-            if states:
-                json.loads(states[-1].read_text())
+    try:  # (the trials' state; basic-variant-state-*.json beside it is a pickle despite its name)
+        states = sorted(experiment_dir.glob("experiment_state-*.json"), key=lambda p: p.name)
+        if states:
+            json.loads(states[-1].read_text())
         return True
     except (OSError, ValueError):
         log.warning("Tune's state in %s cannot be read; the pending cells start a new experiment", experiment_dir)

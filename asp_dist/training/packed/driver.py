@@ -32,8 +32,9 @@ from asp_dist.training.row import build_row
 PACK_CHECKPOINT_VERSION = 1
 
 
-class PackMember(Protocol):
-    """What the driver reads and sets on a member of a packed trainer."""
+class MemberView(Protocol):
+    """What the driver reads and sets on a member of a packed trainer (stacked.PackMember plus the
+    networks a domain's member adds)."""
 
     agents: torch.nn.Module
     probe: Callable[[int], dict[str, float]] | None
@@ -52,7 +53,7 @@ class PackTrainer(Protocol):
     trained weights and loss_columns(i) its row's loss_* columns. state_dict() is everything to
     continue bit for bit after load_state_dict() on a trainer built from the same inputs."""
 
-    members: Sequence[PackMember]
+    members: Sequence[MemberView]
     step: int
     train_steps: int
 
