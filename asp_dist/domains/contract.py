@@ -6,26 +6,35 @@ adversaries, evaluation) and `asp_dist.training` composes them with the method's
 
 Randomness: every random choice goes through an explicit ``torch.Generator`` passed in, so
 that a seed reproduces a domain's output bit for bit and checkpoints can capture RNG state.
+
+A domain is a package of two halves (asp_dist/domains/<name>/): its ``__init__`` is the *card*,
+the Domain subclass with everything a domain describes (knobs and defaults, metrics, paper facts,
+validation, size bounds), which imports no torch; its ``game`` module holds the torch half
+(networks, data, losses, self-play, evaluation), imported the first time a method needs it
+(`Domain.game`). So `asp-dist --help`, `fields`, `status` and `query` never import torch. This
+module too keeps torch to annotations and to the bodies of the functions that use it.
 """
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import TYPE_CHECKING, Any, Callable
-
-import torch
-from torch import nn
 
 from asp_dist.errors import SpecError
 
 if TYPE_CHECKING:  # a spec is resolved against the domains, so spec.py imports this package
+    import torch
+    from torch import nn
+
     from asp_dist.spec import CellSpec
 
 ProgressFn = Callable[[str, int, int, dict], None]
 """progress(phase, done, total, info): called now and then by long loops."""
 
-Tensors = dict[str, torch.Tensor]
+Tensors = dict[str, "torch.Tensor"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +86,15 @@ class Domain(ABC):
 
     # Upper bounds of this domain's size-like knobs, checked by CellSpec with its common ones (spec.UPPER_BOUNDS).
     upper_bounds: dict[str, int] = {}
+
+    @property
+    def game(self) -> ModuleType:
+        """The torch half of this domain: the module ``game`` of the card's package, imported on first use.
+
+        Named rather than imported by the card, so that loading a card loads no torch, and the game may
+        import the card's constants (POOL, AGENTS) without an import cycle. Not cached on the instance:
+        Python's module cache makes the second call a dictionary lookup, and a domain stays picklable."""
+        return importlib.import_module(f"{type(self).__module__}.game")
 
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""
@@ -140,6 +158,8 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
     """Contract checker (PettingZoo-style): same seed -> identical base, P, U, rollouts and scores.
 
     Raises AssertionError naming the piece that broke the contract."""
+    import torch
+
     spec = spec.resolved()
     assert spec.domain == domain.name, "spec is for another domain"
     for metric in ("mixed", "self_play_new", "self_play_base"):
@@ -192,6 +212,8 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
 
 
 def assert_same_params(a: nn.Module, b: nn.Module, what: str) -> None:
+    import torch
+
     sa, sb = a.state_dict(), b.state_dict()
     assert sa.keys() == sb.keys(), f"{what}: different parameter names"
     for k in sa:
@@ -199,6 +221,8 @@ def assert_same_params(a: nn.Module, b: nn.Module, what: str) -> None:
 
 
 def assert_same_tensors(a: Tensors, b: Tensors, what: str) -> None:
+    import torch
+
     assert a.keys() == b.keys(), f"{what}: different keys"
     for k in a:
         assert torch.equal(a[k], b[k]), f"{what}: {k} differs between two runs of one seed"
@@ -207,3 +231,16 @@ def assert_same_tensors(a: Tensors, b: Tensors, what: str) -> None:
 def require(condition: bool, message: str) -> None:
     if not condition:
         raise SpecError(message)
+
+
+def game_attribute(package: str, name: str) -> Any:
+    """A name of `package`'s game module, for the package's module-level ``__getattr__``: the torch half's
+    public names stay importable from the package (``from asp_dist.domains.levers import CommNet``, and
+    bases pickled before the split), while ``import asp_dist.domains.levers`` alone stays light."""
+    if name.startswith("_"):  # dunder probes (pickle, inspect, pytest) must not import torch
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+    game = importlib.import_module(f"{package}.game")
+    try:
+        return getattr(game, name)
+    except AttributeError:
+        raise AttributeError(f"module {package!r} has no attribute {name!r}") from None

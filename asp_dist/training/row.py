@@ -4,6 +4,9 @@ run_cell builds the row here; the store (asp_dist.results.store) validates it ag
 `schema()` and writes it; every reader reads with `schema()`. A column is added in one place,
 `_row_columns`, and everything downstream follows.
 
+No torch at import (only `environment_columns` asks for its version): the store, `asp-dist status` and
+`query` read and validate rows with this schema without loading torch.
+
 Column order: the spec's fields, identity and base, the metrics of every domain (``eval_*``),
 loss diagnostics, figure data, timings, environment, resumption, then the sweep's own columns.
 """
@@ -21,7 +24,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
-import torch
 
 from asp_dist import __version__
 from asp_dist.domains import DOMAINS
@@ -172,6 +174,8 @@ def comparable(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def environment_columns() -> dict[str, Any]:
+    import torch  # here, not at the top: the schema above is read by commands that never train
+
     return {
         "node": socket.gethostname(),
         "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),

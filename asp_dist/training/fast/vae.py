@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 
 from asp_dist.domains.contract import SelfPlayOut
-from asp_dist.domains.vae import paired_error, sample_code, vae_loss_terms
+from asp_dist.domains.vae.game import paired_error, sample_code, self_play_batch, self_play_out, vae_loss_terms
 from asp_dist.spec import CellSpec
 from asp_dist.training.methods import LossWeights
 from asp_dist.training.trainer import Trainer
@@ -37,12 +37,12 @@ class OnePassVAETrainer(Trainer):
         if not (w.needs_self_play and w.paired != 0.0 and len(self.paired["image"])):
             return super().model_terms(w)
         spec, vae, paired = self.spec, self.agents, self.paired
-        x = self.domain.self_play_batch(spec, self.gen)
+        x = self_play_batch(spec, self.gen)
         n = len(x)
         mu_all, logvar_all = vae.encoder(torch.cat([x, paired["image"]])).chunk(2, dim=-1)
         mu, logvar = mu_all[:n], logvar_all[:n]
         z = sample_code(mu, logvar, self.gen)
         logits_all = vae.decoder(torch.cat([z, paired["encoding"]]))
         loss, info = vae_loss_terms(x, mu, logvar, logits_all[:n], spec.vae_kl_weight, spec.vae_recon_loss)
-        sp_out = self.domain.self_play_out(spec, loss, mu, z, info)
+        sp_out = self_play_out(spec, loss, mu, z, info)
         return sp_out, paired_error(spec, mu_all[n:], torch.sigmoid(logits_all[n:]), paired)

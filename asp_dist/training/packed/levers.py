@@ -38,7 +38,7 @@ What stays per member, so that a member's result does not depend on its pack-mat
   replay, randint for random levers, rand for the coins, then disc_steps × (f1, f2) randint into U),
   and the batched update consumes them. A generator ends training in the single-cell run's state.
 - There is no target network: the lever game has one step, so the Q target is the reward itself
-  (asp_dist.domains.levers.dqn_step); the replay buffer is the only Q-learning state.
+  (asp_dist.domains.levers.game.dqn_step); the replay buffer is the only Q-learning state.
 
 Independence of pack-mates: no op mixes members (batched matmuls, gathers within a member's own
 rows, elementwise ops, reductions along rows or features), and a frozen member keeps its place in
@@ -75,7 +75,8 @@ import torch.nn.functional as F
 
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
-from asp_dist.domains.levers import AGENTS, CommNet, epsilon
+from asp_dist.domains.levers import AGENTS
+from asp_dist.domains.levers.game import CommNet, epsilon
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import method_weights

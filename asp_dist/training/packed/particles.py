@@ -72,7 +72,7 @@ import torch.nn.functional as F
 
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
-from asp_dist.domains.particles import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
+from asp_dist.domains.particles.game import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import method_weights

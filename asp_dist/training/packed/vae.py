@@ -70,7 +70,7 @@ import torch.nn.functional as F
 from asp_dist.data.mnist import PIXELS
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
-from asp_dist.domains.vae import VAE
+from asp_dist.domains.vae.game import VAE, train_images
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import lambda_factor, method_weights
@@ -181,7 +181,7 @@ class PackedVAETrainer(PackRecords):
             self.sp_guard = torch.tensor([m.self_play for m in mem]).view(M, 1, 1)
 
         # ---- training images: one tensor, each member's own range (vae_train_images) -----------------
-        images = [domain.train_images(m.spec) for m in mem]
+        images = [train_images(m.spec) for m in mem]
         self.images = max(images, key=len)
         if any(im.data_ptr() != self.images.data_ptr() for im in images):
             raise ValueError("the members' training images are not prefixes of one set")
@@ -274,7 +274,7 @@ class PackedVAETrainer(PackRecords):
             real = self.real_idx[:S * ds, adv_slot[i]].unbind(0) if m.adversary else ()
             high = self.u_sizes[adv_slot[i]] if m.adversary else 0
             for s in range(S):
-                torch.randint(count, (B,), generator=gen, out=idx[s])  # VAEDomain.self_play_batch
+                torch.randint(count, (B,), generator=gen, out=idx[s])  # asp_dist.domains.vae.game.self_play_batch
                 torch.randn((B, d), generator=gen, out=noise[s])       # vae.sample_code
                 for k in range(ds if m.adversary else 0):
                     torch.randint(high, (ub,), generator=gen, out=real[s * ds + k])
