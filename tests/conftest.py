@@ -1,13 +1,24 @@
+import getpass
 import os
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+# Under pytest-xdist each worker's sweeps get an embedded Ray temp dir of their own (the CLI's default,
+# ASP_DIST_RAY_TEMP_DIR): two Rays sharing one would share its session_latest link and pruning.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("ASP_DIST_RAY_TEMP_DIR", f"/tmp/asp-ray-{getpass.getuser()}-{os.environ['PYTEST_XDIST_WORKER']}")
 
 import pytest  # noqa: E402
 import torch  # noqa: E402
 from budgets import tiny_spec  # noqa: E402
 
 torch.set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Slow tests first (stable otherwise): with `-n 2` the longest ones start early and the short ones fill
+    the gaps, instead of two long sweeps meeting at the end (longest-processing-time-first scheduling)."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 @pytest.fixture

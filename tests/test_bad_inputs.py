@@ -7,7 +7,6 @@ through. A reader that closes the pipe early (`asp-dist fields | head -1`) ends 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from budgets import tiny_spec
+from harness import fingerprint
 
 import asp_dist.training.cell as cell_module
 from asp_dist import cli
@@ -136,11 +136,6 @@ def nothing_may_run(monkeypatch):
     mnist.clear_cache()
     yield
     mnist.clear_cache()
-
-
-def fingerprint(root: Path) -> dict[str, str | None]:
-    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None)
-            for p in sorted(root.rglob("*"))}
 
 
 # ---- the cases ----------------------------------------------------------------------------------------------

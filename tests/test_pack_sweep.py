@@ -17,7 +17,6 @@ mid-run, then resumed.
 from __future__ import annotations
 
 import inspect
-import math
 import os
 import shutil
 import signal
@@ -31,6 +30,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from budgets import TINY, tiny_spec
+from harness import clean, cli, env, kill_group, s3_env, start_moto, stop_now
 
 from asp_dist.cli import main
 from asp_dist.errors import SweepError
@@ -66,12 +66,6 @@ def write_space(tmp_path: Path, *, train_steps: int | None = None, paired=(0, 2)
     path = tmp_path / name
     path.write_text(text)
     return str(path)
-
-
-def clean(value):
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return None
-    return value.item() if hasattr(value, "item") else value
 
 
 def stable(row: dict) -> dict:
@@ -415,13 +409,13 @@ def s3_server(tmp_path_factory):
     pytest.importorskip("moto")
     import test_s3
 
-    proc, endpoint = test_s3.start_moto(tmp_path_factory.mktemp("moto") / "moto.log")
+    proc, endpoint = start_moto(tmp_path_factory.mktemp("moto") / "moto.log")
     try:
         test_s3.s3_client(endpoint).create_bucket(Bucket=test_s3.BUCKET)
-        yield test_s3, test_s3.base_env(AWS_ENDPOINT_URL=endpoint, AWS_ACCESS_KEY_ID="asp-test",
-                                        AWS_SECRET_ACCESS_KEY="asp-test-secret")
+        yield test_s3, s3_env(AWS_ENDPOINT_URL=endpoint, AWS_ACCESS_KEY_ID="asp-test",
+                              AWS_SECRET_ACCESS_KEY="asp-test-secret")
     finally:
-        test_s3.stop(proc)
+        stop_now(proc)
 
 
 def test_pack_trainable_on_s3(trainable, tmp_path, s3_server, monkeypatch):
@@ -447,29 +441,11 @@ def test_pack_trainable_on_s3(trainable, tmp_path, s3_server, monkeypatch):
 
 
 # ---- sweeps on Ray -------------------------------------------------------------------------------------------
-def env(**extra):
-    e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
-    e.update(extra)
-    return e
-
-
-def cli(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "asp_dist.cli", *args], env=env(), capture_output=True, text=True,
-                          timeout=timeout, start_new_session=True)
-
-
 @pytest.fixture
 def ray_temp():
     path = f"/tmp/asp-pk-{os.getpid()}"
     yield path
     shutil.rmtree(path, ignore_errors=True)
-
-
-def kill_group(proc):
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
 
 
 @pytest.mark.slow

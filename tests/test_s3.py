@@ -29,62 +29,34 @@ import signal
 import socket
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pandas as pd
 import pytest
+from harness import (
+    KILL_GRID,
+    S3_REGION,
+    assert_rows_match,
+    comparable_rows,
+    expected_rows,
+    free_port,
+    kill_group,
+    ray_cluster,
+    s3_env,
+    space,
+    start_cli,
+    start_moto,
+    stop_now,
+    wait_for,
+)
 
 boto3 = pytest.importorskip("boto3")
 pytest.importorskip("moto")
 
 BUCKET = "asp-test"
-REGION = "us-east-1"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def base_env(**extra) -> dict[str, str]:
-    e = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
-    e.update(OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1", AWS_DEFAULT_REGION=REGION,
-             AWS_REGION=REGION, AWS_EC2_METADATA_DISABLED="true", AWS_CONFIG_FILE="/nonexistent",
-             AWS_SHARED_CREDENTIALS_FILE="/nonexistent")
-    e.update(extra)
-    return e
-
-
-def start_moto(log: Path, authenticate: bool = False) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    env = base_env()
-    if authenticate:
-        env["INITIAL_NO_AUTH_ACTION_COUNT"] = "3"  # the IAM user, its policy and its key; every later request is checked
-    proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], env=env,
-                            stdout=open(log, "w"), stderr=subprocess.STDOUT, start_new_session=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            socket.create_connection(("127.0.0.1", port), 0.2).close()
-            return proc, f"http://127.0.0.1:{port}"
-        except OSError:
-            if proc.poll() is not None:
-                raise RuntimeError(f"moto server exited: {log.read_text()[-2000:]}")
-            time.sleep(0.1)
-    stop(proc)
-    raise RuntimeError("moto server did not start within 60 s")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    proc.wait(10)
+REGION = S3_REGION
 
 
 def s3_client(endpoint: str, key: str = "asp-test", secret: str = "asp-test-secret"):
@@ -100,10 +72,10 @@ def s3(tmp_path_factory):
     try:
         client = s3_client(endpoint)
         client.create_bucket(Bucket=BUCKET)
-        env = base_env(AWS_ENDPOINT_URL=endpoint, AWS_ACCESS_KEY_ID="asp-test", AWS_SECRET_ACCESS_KEY="asp-test-secret")
+        env = s3_env(AWS_ENDPOINT_URL=endpoint, AWS_ACCESS_KEY_ID="asp-test", AWS_SECRET_ACCESS_KEY="asp-test-secret")
         yield SimpleNamespace(endpoint=endpoint, env=env, client=client, proc=proc, log=log)
     finally:
-        stop(proc)
+        stop_now(proc)
 
 
 def use_env(monkeypatch, env: dict[str, str]) -> None:
@@ -293,14 +265,12 @@ def test_sweep_lock_on_s3_refuses_a_second_run_and_frees_at_once_after_sigkill_h
         holder.send_signal(signal.SIGKILL)
         holder.wait(30)
     finally:
-        stop(holder)
+        stop_now(holder)
     # Killed on this machine: its lease is seen to be dead at once, no waiting for it to lapse.
     assert ledger.lock_holder(sweep_dir) is None
     assert "not running" in ledger.sweep_status("smoke", results)
-    start = time.monotonic()
-    with ledger.sweep_lock(sweep_dir):
+    with ledger.sweep_lock(sweep_dir, grace_s=0):  # taken at the first try: nothing to wait for
         assert ledger.lock_holder(sweep_dir).startswith(f"pid {os.getpid()} on ")
-    assert time.monotonic() - start < 5
     assert ledger.lock_holder(sweep_dir) is None
     assert main(["status", "smoke", "--results", results]) == 0
 
@@ -443,7 +413,7 @@ def auth_s3(tmp_path_factory):
         client.put_object(Bucket=BUCKET, Key="runs/exp/manifest.json", Body=b'{"cells": []}')
         yield SimpleNamespace(endpoint=endpoint, key=key["AccessKeyId"], client=client)
     finally:
-        stop(proc)
+        stop_now(proc)
 
 
 def all_keys(client) -> set[str]:
@@ -451,6 +421,7 @@ def all_keys(client) -> set[str]:
 
 
 @pytest.mark.parametrize("case", ["unreachable-endpoint", "wrong-credentials", "missing-bucket"])
+@pytest.mark.xdist_group("auth-s3")  # shares a module fixture: one worker
 def test_bad_storage_is_one_line_and_exit_2_with_nothing_written(case, s3, auth_s3, monkeypatch, capsys, tmp_path):
     from asp_dist.cli import main
 
@@ -467,11 +438,9 @@ def test_bad_storage_is_one_line_and_exit_2_with_nothing_written(case, s3, auth_
     use_env(monkeypatch, env)
     before = (all_keys(s3.client), all_keys(auth_s3.client))
     for command in COMMANDS:
-        start = time.monotonic()
         assert main([*command, "--results", f"s3://{bucket}/runs"]) == 2, command
         err = capsys.readouterr().err
         assert err.startswith("asp-dist: error: ") and needle in err and len(err.strip().splitlines()) == 1, err
-        assert time.monotonic() - start < 30, command
     assert (all_keys(s3.client), all_keys(auth_s3.client)) == before, "something was written"
     if case == "missing-bucket":
         assert bucket not in {b["Name"] for b in s3.client.list_buckets()["Buckets"]}, "a bucket was created"
@@ -526,6 +495,7 @@ def smoke_on_s3(s3, tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("smoke-s3")  # shares a module fixture: one worker
 def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     from asp_dist.results import location, store
     from asp_dist.sweep.spaces import expand
@@ -559,6 +529,7 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("smoke-s3")  # shares a module fixture: one worker
 def test_query_and_stats_of_a_sweep_on_s3(s3, smoke_on_s3):
     run = smoke_on_s3
     assert run.proc.returncode == 0, run.proc.stderr[-3000:]
@@ -581,14 +552,12 @@ def test_query_and_stats_of_a_sweep_on_s3(s3, smoke_on_s3):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("smoke-s3")  # shares a module fixture: one worker
 def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(s3, smoke_on_s3):
     """The S3 twin of tests/test_sweep.py's damaged-file test: a cut-short, an empty and another cell's object
     under a cell's key are copied into damaged/ and deleted (one warning each), the cells train again and
     each row is written once; the other objects are not rewritten. Runs after the other smoke_on_s3 tests."""
-    from test_sweep import PLACE_COLUMNS, clean
-
     from asp_dist.results import location, store
-    from asp_dist.training.row import comparable
 
     run = smoke_on_s3
     assert run.proc.returncode == 0, run.proc.stderr[-3000:]
@@ -600,8 +569,7 @@ def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(
             use_env(mp, s3.env)
             df = store.read_rows(f"{run.results}/smoke")
             location._CLIENTS.clear()
-        return {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
-                for r in df.to_dict("records")}
+        return comparable_rows(df)
 
     rows = read_rows()
     body = {k: s3.client.get_object(Bucket=BUCKET, Key=k)["Body"].read() for k in cells[:4]}
@@ -625,39 +593,38 @@ def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(
 
 @pytest.mark.slow
 def test_sigkill_of_driver_then_resume_on_s3(s3, tmp_path):
-    from test_sweep import assert_rows_match, expected_rows, kill_group, space
-
-    from asp_dist.results import location
+    from asp_dist.results import location, store
     from asp_dist.sweep.spaces import expand
 
-    grid = space(tmp_path, """
-[[grid]]
-fixed = { train_steps = 4000, unpaired_size = 256 }
-axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial = [0, 1] }
-""")
+    grid = space(tmp_path, KILL_GRID)
     specs = expand(grid)
     results = f"s3://{BUCKET}/kill-runs"
     ray_temp = f"/tmp/asp-s3k-{os.getpid()}"
     cwd = tmp_path / "cwd"
     cwd.mkdir()
 
-    def cells_done() -> int:
-        return len([k for k in keys(s3, "kill-runs/k/cells/") if k.endswith(".parquet")])
+    def cells_done() -> set[str]:
+        return {k.rsplit("/", 1)[1][:-8] for k in keys(s3, "kill-runs/k/cells/") if k.endswith(".parquet")}
 
-    driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", grid, "--name", "k", "--results",
-                               results, "--checkpoint-every", "0.3", "--ray-temp-dir", ray_temp], env=s3.env, cwd=cwd,
-                              start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    def resumable_mid_cell() -> bool:
+        """As harness.resumable_mid_cell, on the bucket (LastModified has one-second steps: strictly later)."""
+        done, objects = cells_done(), keys(s3, "kill-runs/k/tune/run-1/")
+        saved = [when for k, (_, when) in objects.items() if k.rsplit("/", 1)[1].startswith("experiment_state-")]
+        return bool(done and saved) and any(
+            when < max(saved) for k, (_, when) in objects.items() if "/checkpoint_" in k and k.split("/")[4] not in done)
+
+    driver = start_cli("sweep", grid, "--name", "k", "--results", results, "--checkpoint-every", "0.3",
+                       "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log", base_env=s3.env, cwd=cwd)
     try:
-        deadline = time.monotonic() + 300
-        while not cells_done() and time.monotonic() < deadline and driver.poll() is None:
-            time.sleep(0.3)
-        time.sleep(1.5)  # the next cells are mid-run and have checkpointed (every 0.3 s) into the bucket
-        assert driver.poll() is None, "the sweep finished before it could be interrupted"
+        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state (in the bucket)
+        # knows.
+        wait_for(resumable_mid_cell, 300, poll_s=0.3, while_alive=driver,
+                 what="a finished cell and a checkpointed running one")
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
     finally:
         kill_group(driver)
-    done_at_kill = cells_done()
+    done_at_kill = len(cells_done())
     assert 1 <= done_at_kill < len(specs)
     status = cli(s3, "status", "k", "--results", results, cwd=cwd)
     assert "not running" in status.stdout, status.stdout + status.stderr  # the dead driver's lease, seen at once
@@ -669,7 +636,7 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
     assert f"({done_at_kill} already done)" in resumed.stderr
     with pytest.MonkeyPatch.context() as mp:
         use_env(mp, s3.env)
-        df = assert_rows_match(f"{results}/k", expected_rows(specs))
+        df = assert_rows_match(store.read_rows(f"{results}/k"), expected_rows(specs))
         location._CLIENTS.clear()
     assert df["resumed_from_step"].notna().any(), "no cell continued from a checkpoint restored from the bucket"
     assert not local_results(cwd)
@@ -679,59 +646,17 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
 def two_nodes_without_shared_disk(s3, tmp_path):
     """Two Ray nodes on loopback, each with its own temp dir and working directory, both with the S3 env and
     Ray's token authentication on (the driver joins with cluster.env)."""
-    from test_sweep import RAY, CLUSTER_TOKEN
-
-    node_env = dict(s3.env, RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN)
-    port = free_port()
-    address = f"127.0.0.1:{port}"
     dirs = {name: tmp_path / name for name in ("head", "worker", "driver")}
     for d in dirs.values():
         d.mkdir()
     temps = [f"/tmp/asp-s3h-{os.getpid()}", f"/tmp/asp-s3w-{os.getpid()}"]
-    common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
-              "--object-store-memory=100000000"]
-    procs = [subprocess.Popen([RAY, "start", "--head", f"--port={port}", "--include-dashboard=false",
-                               f"--temp-dir={temps[0]}", *common], env=node_env, cwd=dirs["head"],
-                              start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    wait_nodes = textwrap.dedent(f"""\
-        import ray, time, sys
-        ray.init(address='{address}', logging_level='ERROR')
-        t = time.time()
-        while sum(n['Alive'] for n in ray.nodes()) < int(sys.argv[1]) and time.time() - t < 120:
-            time.sleep(0.5)
-        print(sum(n['Alive'] for n in ray.nodes()))
-        """)
-    try:
-        for _ in range(60):
-            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=node_env, capture_output=True,
-                                   text=True, timeout=180, cwd=dirs["driver"])
-            if probe.stdout.strip() == "1":
-                break
-            time.sleep(1)
-        procs.append(subprocess.Popen([RAY, "start", f"--address={address}", f"--temp-dir={temps[1]}", *common],
-                                      env=node_env, cwd=dirs["worker"], start_new_session=True,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=node_env, capture_output=True, text=True,
-                               timeout=180, cwd=dirs["driver"])
-        assert probe.stdout.strip() == "2", probe.stderr[-2000:]
-        yield SimpleNamespace(address=address, dirs=dirs, temps=[Path(t) for t in temps], env=node_env)
-    finally:
-        for p in reversed(procs):
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-        time.sleep(2)
-        for p in procs:
-            stop(p)
-        for t in temps:
-            subprocess.run(["rm", "-rf", t])
+    with ray_cluster(temps, base_env=s3.env, cwds=[dirs["head"], dirs["worker"]]) as cluster:
+        cluster.dirs = dirs
+        yield cluster
 
 
 @pytest.mark.slow
 def test_two_node_cluster_with_results_on_s3_and_none_on_disk(s3, tmp_path, two_nodes_without_shared_disk):
-    from test_sweep import space
-
     from asp_dist.results import location, store
 
     cluster = two_nodes_without_shared_disk

@@ -10,12 +10,9 @@ are killed from the test, as an OOM killer or a lost node would: no hook in the 
 from __future__ import annotations
 
 import json
-import math
 import os
-import secrets
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -26,73 +23,31 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 import sockets
+from harness import (
+    CLUSTER_TOKEN,
+    KILL_GRID,
+    assert_rows_match,
+    cli,
+    comparable_rows,
+    env,
+    expected_rows,
+    kill_group,
+    parquet_files,
+    ray_cluster,
+    resumable_mid_cell,
+    space,
+    start_cli,
+    wait_for,
+)
 
 from asp_dist.cli import main
 from asp_dist.results import store
 from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import rejected_path
 from asp_dist.sweep.spaces import expand
-from asp_dist.training.cell import run_cell
-from asp_dist.training.row import comparable
 from asp_dist.training.row import schema as row_schema
 
 pytestmark = pytest.mark.slow
-
-# Differ between two runs of one spec beyond cell.VOLATILE_COLUMNS: where and by which sweep it
-# ran, and the working tree's revision (other engineers commit while tests run).
-PLACE_COLUMNS = {"sweep_id", "ray_node_id", "ray_version", "code_revision"}
-
-
-def env(**extra):
-    """This process's environment for a CLI subprocess; a None in `extra` removes that variable."""
-    e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
-    e.update(extra)
-    return {k: v for k, v in e.items() if v is not None}
-
-
-def cli(*args, timeout=420, **extra_env):
-    proc = subprocess.run([sys.executable, "-m", "asp_dist.cli", *args], env=env(**extra_env), capture_output=True,
-                          text=True, timeout=timeout, start_new_session=True)
-    return proc
-
-
-def space(tmp_path, text, name="grid.toml"):
-    path = tmp_path / name
-    path.write_text(text)
-    return str(path)
-
-
-def clean(value):
-    """Parquet gives NaN for a null float and numpy scalars; compare as plain Python values."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return None
-    return value.item() if hasattr(value, "item") else value
-
-
-def expected_rows(specs):
-    return {s.cell_id: {k: clean(v) for k, v in comparable(run_cell(s)).items() if k not in PLACE_COLUMNS}
-            for s in specs}
-
-
-def assert_rows_match(sweep_dir, expected):
-    df = store.read_rows(sweep_dir)
-    assert len(df) == len(expected) and df["cell_id"].is_unique
-    assert set(df["cell_id"]) == set(expected)
-    for rec in df.to_dict("records"):
-        got = {k: clean(v) for k, v in comparable(rec).items() if k in expected[rec["cell_id"]]}
-        assert got == expected[rec["cell_id"]], rec["cell_id"]
-    return df
-
-
-def kill_group(proc):
-    try:
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-
-
-def parquet_files(sweep_dir):
-    return sorted(p for p in Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
 
 
 @pytest.fixture(scope="module")
@@ -127,6 +82,7 @@ def _process_name(pid: int) -> str:
         return "?"
 
 
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
 def test_sweep_listens_on_loopback_only(smoke):
     """Nothing the embedded Ray or the driver starts accepts connections from beyond 127.0.0.1 (issue: an open
     Ray head on a shared network runs anyone's code): GCS, raylet, workers and the driver all bind loopback."""
@@ -139,6 +95,7 @@ def test_sweep_listens_on_loopback_only(smoke):
     assert not seen.wrote_token_file, "the sweep wrote a Ray token file into the home directory"
 
 
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
 def test_smoke_sweep_end_to_end(smoke):
     results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -165,6 +122,7 @@ def test_smoke_sweep_end_to_end(smoke):
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"]
 
 
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
 def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, monkeypatch, capsys):
     results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -179,24 +137,15 @@ def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, m
 
 
 def test_sigkill_of_driver_then_resume(tmp_path):
-    grid = space(tmp_path, """
-[[grid]]
-fixed = { train_steps = 4000, unpaired_size = 256 }
-axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial = [0, 1] }
-""")
+    grid = space(tmp_path, KILL_GRID)
     specs = expand(grid)
     results = tmp_path / "results"
-    driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", grid, "--name", "k", "--results",
-                               str(results), "--checkpoint-every", "0.3"], env=env(), start_new_session=True,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    driver = start_cli("sweep", grid, "--name", "k", "--results", str(results), "--checkpoint-every", "0.3",
+                       log_dir=tmp_path / "log")
     try:
-        deadline = time.monotonic() + 300
-        while not parquet_files(results / "k") and time.monotonic() < deadline and driver.poll() is None:
-            time.sleep(0.2)
-        # Cells last ~4 s on a fast core: 1.5 s after the first row, the next cells are mid-run and
-        # have checkpointed (every 0.3 s). Shorter cells made this flaky on faster machines.
-        time.sleep(1.5)
-        assert driver.poll() is None, "the sweep finished before it could be interrupted"
+        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state knows.
+        wait_for(lambda: resumable_mid_cell(results / "k"), 300, while_alive=driver,
+                 what="a finished cell and a checkpointed running one")
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
     finally:
@@ -209,7 +158,7 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial
     resumed = cli("resume", "k", "--results", str(results), "--checkpoint-every", "0.3")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"({done_at_kill} already done)" in resumed.stderr
-    df = assert_rows_match(results / "k", expected_rows(specs))
+    df = assert_rows_match(store.read_rows(results / "k"), expected_rows(specs))
     # Cells running at the kill continued from their checkpoints instead of starting over.
     assert df["resumed_from_step"].notna().any(), df[["cell_id", "resumed_from_step"]]
     assert not store.failed_cells(results / "k")
@@ -253,7 +202,7 @@ unpaired_size = 256
 fixed = { train_steps = 400, trial = 0 }
 axes = { paired = [0] }
 
-[[grid]]  # long enough to be killed mid-run
+[[grid]]  # long enough to be killed mid-run (~4 s; with 1500 steps a third worker was seen killed: 3 != 2)
 fixed = { train_steps = 4000, trial = 0 }
 axes = { paired = [2, 4] }
 
@@ -321,65 +270,13 @@ axes = { paired = [8] }
     assert all(f.stat().st_mtime_ns == m for f, m in mtimes.items())
     assert not store.failed_cells(sweep_dir)
     assert (sweep_dir / "tune" / "run-2").is_dir()
-    assert_rows_match(sweep_dir, expected_rows(specs))
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-RAY = str(Path(sys.executable).with_name("ray"))  # this interpreter's Ray, not whatever is on PATH
-CLUSTER_TOKEN = secrets.token_hex(16)
-
-
-def token_env(**extra):
-    """The environment of a cluster's nodes and of a driver that joins it: Ray's token authentication on
-    (a cluster opens ports beyond loopback: cluster/README.md)."""
-    return env(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN, **extra)
+    assert_rows_match(store.read_rows(sweep_dir), expected_rows(specs))
 
 
 @pytest.fixture
-def two_node_cluster(tmp_path):
-    port = free_port()
-    address = f"127.0.0.1:{port}"
-    common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
-              "--object-store-memory=100000000"]
-    head = subprocess.Popen([RAY, "start", "--head", f"--port={port}", "--include-dashboard=false",
-                             "--temp-dir=/tmp/asp-rt-h", *common], env=token_env(), start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    procs = [head]
-    try:
-        wait_nodes = ("import ray, time, sys\n"
-                      f"ray.init(address='{address}', logging_level='ERROR')\n"
-                      "t = time.time()\n"
-                      "while sum(n['Alive'] for n in ray.nodes()) < int(sys.argv[1]) and time.time() - t < 120:\n"
-                      "    time.sleep(0.5)\n"
-                      "print(sum(n['Alive'] for n in ray.nodes()))\n")
-        for attempt in range(60):  # the head takes a while to accept connections
-            probe = subprocess.run([sys.executable, "-c", wait_nodes, "1"], env=token_env(), capture_output=True,
-                                   text=True, timeout=180)
-            if probe.stdout.strip() == "1":
-                break
-            time.sleep(1)
-        procs.append(subprocess.Popen([RAY, "start", f"--address={address}", "--temp-dir=/tmp/asp-rt-w", *common],
-                                      env=token_env(), start_new_session=True, stdout=subprocess.DEVNULL,
-                                      stderr=subprocess.DEVNULL))
-        probe = subprocess.run([sys.executable, "-c", wait_nodes, "2"], env=token_env(), capture_output=True,
-                               text=True, timeout=180)
-        assert probe.stdout.strip() == "2", probe.stderr[-2000:]
-        yield address
-    finally:
-        for p in reversed(procs):
-            try:
-                os.killpg(p.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-        time.sleep(2)
-        for p in procs:
-            kill_group(p)
-            p.wait(10)
+def two_node_cluster():
+    with ray_cluster(["/tmp/asp-rt-h", "/tmp/asp-rt-w"]) as cluster:
+        yield cluster.address
 
 
 def test_two_node_cluster_via_address(tmp_path, two_node_cluster):
@@ -405,6 +302,7 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
     assert df["ray_node_id"].nunique() == 2, df[["cell_id", "ray_node_id"]]
 
 
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
 def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, tmp_path):
     """A cell file the reader rejects (cut short, empty, another cell's, a dangling link) is moved into
     damaged/ with one warning line and its cell trains again, its row written once; every valid cell file is
@@ -413,8 +311,7 @@ def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, t
     assert proc.returncode == 0, proc.stderr[-3000:]
     sweep_dir = results / "smoke"
     files = parquet_files(sweep_dir)
-    rows = {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
-            for r in store.read_rows(sweep_dir).to_dict("records")}
+    rows = comparable_rows(store.read_rows(sweep_dir))
     cut, empty, wrong, dangling = files[:4]
     cut.write_bytes(cut.read_bytes()[:200])
     empty.write_bytes(b"")
@@ -433,9 +330,7 @@ def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, t
     assert "18/18 cells done, 0 failed" in resumed.stdout
     for path in (cut, empty, wrong, dangling):
         assert path.is_file() and not path.is_symlink()
-    again = {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
-             for r in store.read_rows(sweep_dir, strict=True).to_dict("records")}
-    assert again == rows, "a redone cell's row differs from its first run's"
+    assert comparable_rows(store.read_rows(sweep_dir, strict=True)) == rows, "a redone cell's row differs from its first run's"
     assert {f: (f.stat().st_mtime_ns, f.read_bytes()) for f in files[4:]} == intact, "a valid cell was rewritten"
     kept = [p for p in (sweep_dir / store.DAMAGED_DIR).rglob("*.parquet") if p.parent.parent.parent.name == "cells"]
     assert {p.stem for p in kept} == damaged and any(p.is_symlink() for p in kept)

@@ -11,7 +11,6 @@ started can be found (and is killed in teardown) without touching any other Ray 
 
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 import signal
@@ -24,34 +23,13 @@ import time
 from pathlib import Path
 
 import pytest
+from harness import env, fingerprint, free_port, parquet_files
 
 from asp_dist import cli
 from asp_dist.data.mnist import MNISTError
 from asp_dist.results import store
 from asp_dist.sweep import ledger
 from asp_dist.sweep.spaces import expand
-
-
-def env(**extra):
-    e = dict(os.environ, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
-    e.update(extra)
-    return e
-
-
-def free_port() -> int:
-    """A loopback port nothing listens on (bound, then closed)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def fingerprint(root: Path) -> dict[str, str | None]:
-    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None)
-            for p in sorted(root.rglob("*"))}
-
-
-def parquet_files(sweep_dir) -> list[Path]:
-    return sorted(Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
 
 
 # ---- a cluster that does not answer -------------------------------------------------------------------------
@@ -133,12 +111,10 @@ def test_a_head_that_accepts_but_never_answers_is_given_up_on_in_time(tmp_path):
 
     thread = threading.Thread(target=accept, daemon=True)
     thread.start()
-    try:
-        start = time.monotonic()
+    try:  # (before: ray.init waited for minutes; the subprocess's timeout is the guard against that)
         proc = subprocess.run([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results",
                                str(tmp_path / "results"), "--address", address, "--connect-timeout", "3"],
-                              env=env(), capture_output=True, text=True, timeout=300, start_new_session=True)
-        elapsed = time.monotonic() - start
+                              env=env(), capture_output=True, text=True, timeout=120, start_new_session=True)
     finally:
         stop.set()
         thread.join(5)
@@ -147,7 +123,6 @@ def test_a_head_that_accepts_but_never_answers_is_given_up_on_in_time(tmp_path):
         server.close()
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert f"asp-dist: error: no answer from the Ray cluster at {address} within 3 s" in proc.stderr
-    assert elapsed < 90, elapsed  # the Ray import, then 3 s (before: minutes)
     assert not (tmp_path / "results").exists()
 
 

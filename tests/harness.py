@@ -1,0 +1,276 @@
+"""What the end-to-end tests share: running the CLI as a user would, processes and ports, sweep layouts,
+rows an uninterrupted run gives, and Ray clusters on loopback.
+
+Every sweep runs as a CLI subprocess of this interpreter (`python -m asp_dist.cli`), in its own session,
+so a killed driver cannot take pytest with it and its process group can be killed in teardown. Tools are
+found next to sys.executable (the venv's `ray`), never on PATH.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Iterator
+
+RAY = str(Path(sys.executable).with_name("ray"))  # this interpreter's Ray, not whatever is on PATH
+CLUSTER_TOKEN = secrets.token_hex(16)  # Ray's token authentication for the clusters the tests start
+# Differ between two runs of one spec beyond row.VOLATILE_COLUMNS: where and by which sweep it ran, and
+# the working tree's revision (other engineers commit while tests run).
+PLACE_COLUMNS = {"sweep_id", "ray_node_id", "ray_version", "code_revision"}
+
+
+# ---- processes ------------------------------------------------------------------------------------------
+def env(base: dict[str, str] | None = None, **extra: str | None) -> dict[str, str]:
+    """The environment of a CLI subprocess: `base` (default: this process's), one thread per process, no
+    usage stats, unbuffered output, then `extra` (a None value removes that variable)."""
+    e = dict(os.environ if base is None else base, OMP_NUM_THREADS="1", RAY_USAGE_STATS_ENABLED="0",
+             PYTHONUNBUFFERED="1")
+    e.update(extra)
+    return {k: v for k, v in e.items() if v is not None}
+
+
+def token_env(base: dict[str, str] | None = None, **extra: str | None) -> dict[str, str]:
+    """env() for a cluster's nodes and a driver that joins it: token authentication on (cluster/README.md)."""
+    return env(base, RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN, **extra)
+
+
+def cli(*args: str, timeout: float = 420, cwd: str | Path | None = None, base_env: dict[str, str] | None = None,
+        **extra_env: str | None) -> subprocess.CompletedProcess:
+    """`asp-dist ARGS` in a subprocess of this interpreter, in its own session; output captured."""
+    return subprocess.run([sys.executable, "-m", "asp_dist.cli", *args], env=env(base_env, **extra_env),
+                          capture_output=True, text=True, timeout=timeout, start_new_session=True, cwd=cwd)
+
+
+def start_cli(*args: str, log_dir: Path, base_env: dict[str, str] | None = None, cwd: str | Path | None = None,
+              **extra_env: str | None) -> subprocess.Popen:
+    """`asp-dist ARGS` started in the background; its output goes to log_dir/out and log_dir/err (files: a
+    full pipe would block the driver). read_log(log_dir) reads them back."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    with open(log_dir / "out", "w") as out, open(log_dir / "err", "w") as err:
+        return subprocess.Popen([sys.executable, "-m", "asp_dist.cli", *args], env=env(base_env, **extra_env),
+                                stdout=out, stderr=err, start_new_session=True, cwd=cwd)
+
+
+def read_log(log_dir: Path) -> tuple[str, str]:
+    return (log_dir / "out").read_text(), (log_dir / "err").read_text()
+
+
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL the process group of a CLI started by cli()/start_cli() (the Ray processes it started too)."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(condition, seconds: float, *, poll_s: float = 0.05, while_alive: subprocess.Popen | None = None,
+             what: str = "the condition") -> Any:
+    """Poll `condition()` until it is truthy (returned), the deadline passes or `while_alive` ends (an
+    AssertionError either way): tests wait for the state they need, never a fixed time."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        if while_alive is not None and while_alive.poll() is not None:
+            raise AssertionError(f"the process ended (exit {while_alive.returncode}) before {what}")
+        time.sleep(poll_s)
+    raise AssertionError(f"{what} did not happen within {seconds:g} s")
+
+
+# ---- sweep layouts --------------------------------------------------------------------------------------
+# The grid the driver-kill tests (disk and S3) interrupt: 8 cells of about 1.5 s each on one core, with
+# checkpoints every 0.3 s, so that a cell is mid-run with a persisted checkpoint while others are done.
+KILL_GRID = """
+[[grid]]
+fixed = { train_steps = 1500, unpaired_size = 256 }
+axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2], trial = [0, 1] }
+"""
+
+
+def space(tmp_path: Path, text: str, name: str = "grid.toml") -> str:
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def parquet_files(sweep_dir: str | Path) -> list[Path]:
+    return sorted(Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
+
+
+def resumable_mid_cell(sweep_dir: Path, experiment: str = "run-1") -> bool:
+    """A cell has its row, and another, still running, has a checkpoint that Tune's experiment state knows
+    (the state was saved after it: Tune restores from that state, which lags a checkpoint under load)."""
+    done = {p.stem for p in parquet_files(sweep_dir)}
+    tune_dir = sweep_dir / "tune" / experiment
+    states = list(tune_dir.glob("experiment_state-*.json")) if tune_dir.is_dir() else []
+    if not done or not states:
+        return False
+    saved = max(p.stat().st_mtime for p in states)
+    return any(c.stat().st_mtime < saved for c in tune_dir.glob("*/checkpoint_*") if c.parent.name not in done)
+
+
+def fingerprint(root: Path) -> dict[str, str | None]:
+    """path -> content hash of every file under `root` (None for a directory): "nothing was written"."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
+            for p in sorted(root.rglob("*"))}
+
+
+# ---- rows -------------------------------------------------------------------------------------------------
+def clean(value: Any) -> Any:
+    """Parquet gives NaN for a null float and numpy scalars; compare as plain Python values."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return None
+    return value.item() if hasattr(value, "item") else value
+
+
+_EXPECTED: dict[str, dict[str, Any]] = {}  # cell id -> its uninterrupted row (this process)
+
+
+def expected_rows(specs) -> dict[str, dict[str, Any]]:
+    """The rows an uninterrupted run_cell gives, without volatile and place columns; computed once per cell
+    and test process (the disk and the S3 kill tests run the same grid)."""
+    from asp_dist.training.cell import run_cell
+    from asp_dist.training.row import comparable
+
+    for s in specs:
+        if s.cell_id not in _EXPECTED:
+            _EXPECTED[s.cell_id] = {k: clean(v) for k, v in comparable(run_cell(s)).items() if k not in PLACE_COLUMNS}
+    return {s.cell_id: _EXPECTED[s.cell_id] for s in specs}
+
+
+def comparable_rows(df) -> dict[str, dict[str, Any]]:
+    """A sweep's rows as expected_rows gives them, by cell id."""
+    from asp_dist.training.row import comparable
+
+    return {r["cell_id"]: {k: clean(v) for k, v in comparable(r).items() if k not in PLACE_COLUMNS}
+            for r in df.to_dict("records")}
+
+
+def assert_rows_match(df, expected: dict[str, dict[str, Any]]):
+    """Every expected cell exactly once, each row equal to the uninterrupted run's (bit for bit)."""
+    assert len(df) == len(expected) and df["cell_id"].is_unique
+    assert set(df["cell_id"]) == set(expected)
+    got = comparable_rows(df)
+    for cell_id, row in expected.items():
+        assert {k: got[cell_id].get(k) for k in row} == row, cell_id
+    return df
+
+
+# ---- Ray clusters on loopback ----------------------------------------------------------------------------
+WAIT_NODES = """import ray, sys, time
+ray.init(address=sys.argv[1], logging_level='ERROR')
+t = time.time()
+while sum(n['Alive'] for n in ray.nodes()) < int(sys.argv[2]) and time.time() - t < 120:
+    time.sleep(0.5)
+print(sum(n['Alive'] for n in ray.nodes()))
+"""
+
+
+@contextmanager
+def ray_cluster(temps: list[str], *, base_env: dict[str, str] | None = None,
+                cwds: list[Path] | None = None) -> Iterator[SimpleNamespace]:
+    """A Ray cluster of len(temps) one-CPU nodes on this machine (a head, then workers joining it), each with
+    its own temp dir (and working directory), token authentication on: .address, .env (what a driver
+    joining it needs). Only the processes started here are stopped at the end (never `ray stop`)."""
+    port = free_port()
+    address = f"127.0.0.1:{port}"
+    node_env = token_env(base_env)
+    common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
+              "--object-store-memory=100000000"]
+    cwds = cwds or [None] * len(temps)
+    procs = []
+
+    def nodes_alive(n: int) -> bool:
+        probe = subprocess.run([sys.executable, "-c", WAIT_NODES, address, str(n)], env=node_env, capture_output=True,
+                               text=True, timeout=180, cwd=cwds[0])
+        return probe.stdout.strip() == str(n)
+
+    try:
+        procs.append(subprocess.Popen([RAY, "start", "--head", f"--port={port}", "--include-dashboard=false",
+                                       f"--temp-dir={temps[0]}", *common], env=node_env, cwd=cwds[0],
+                                      start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        wait_for(lambda: nodes_alive(1), 120, poll_s=0.5, what="the Ray head accepting connections")
+        for temp, cwd in zip(temps[1:], cwds[1:]):
+            procs.append(subprocess.Popen([RAY, "start", f"--address={address}", f"--temp-dir={temp}", *common],
+                                          env=node_env, cwd=cwd, start_new_session=True, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL))
+        assert nodes_alive(len(temps)), "not every Ray node joined"
+        yield SimpleNamespace(address=address, env=node_env, temps=[Path(t) for t in temps])
+    finally:
+        for p in reversed(procs):  # `ray start --block` stops its node on SIGTERM
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                pass
+            kill_group(p)
+            p.wait(10)
+        for t in temps:
+            subprocess.run(["rm", "-rf", t])
+
+
+# ---- an S3 server on loopback ------------------------------------------------------------------------------
+S3_REGION = "us-east-1"
+
+
+def s3_env(**extra: str) -> dict[str, str]:
+    """env() without the caller's AWS settings (no profile, no instance metadata): only what a test gives."""
+    e = env({k: v for k, v in os.environ.items() if not k.startswith("AWS_")}, AWS_DEFAULT_REGION=S3_REGION,
+            AWS_REGION=S3_REGION, AWS_EC2_METADATA_DISABLED="true", AWS_CONFIG_FILE="/nonexistent",
+            AWS_SHARED_CREDENTIALS_FILE="/nonexistent")
+    e.update(extra)
+    return e
+
+
+def start_moto(log: Path, authenticate: bool = False) -> tuple[subprocess.Popen, str]:
+    """moto's S3 server (a real HTTP server) on a free loopback port; (process, endpoint URL)."""
+    port = free_port()
+    server_env = s3_env()
+    if authenticate:
+        server_env["INITIAL_NO_AUTH_ACTION_COUNT"] = "3"  # the IAM user, its policy and its key; the rest is checked
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                                env=server_env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def answers() -> bool:
+        if proc.poll() is not None:
+            raise RuntimeError(f"moto server exited: {log.read_text()[-2000:]}")
+        try:
+            socket.create_connection(("127.0.0.1", port), 0.2).close()
+            return True
+        except OSError:
+            return False
+
+    try:
+        wait_for(answers, 60, poll_s=0.1, what="the moto server accepting connections")
+    except AssertionError:
+        stop_now(proc)
+        raise
+    return proc, f"http://127.0.0.1:{port}"
+
+
+def stop_now(proc: subprocess.Popen) -> None:
+    """SIGKILL a server's process group and reap it."""
+    kill_group(proc)
+    proc.wait(10)
