@@ -191,7 +191,8 @@ def ray_cluster(temps: list[str], *, base_env: dict[str, str] | None = None,
     joining it needs). Only the processes started here are stopped at the end (never `ray stop`)."""
     port = free_port()
     address = f"127.0.0.1:{port}"
-    node_env = token_env(base_env)
+    # No drain on SIGTERM (Ray waits up to 30 s for Serve-like components; a test cluster has none).
+    node_env = token_env(base_env, RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0")
     common = ["--num-cpus=1", "--block", "--disable-usage-stats", "--node-ip-address=127.0.0.1",
               "--object-store-memory=100000000"]
     cwds = cwds or [None] * len(temps)
