@@ -56,7 +56,7 @@ MUTATIONS = (
              ("tests/test_sweep_lifecycle.py -k whatever_handler",)),
     Mutation("λ1 < 0 is accepted for PC and OSP", "asp_dist/spec.py",
              "        self.refuse_negatives()\n        if self.lambda_schedule_frac is not None",
-             "        if self.lambda_schedule_frac is not None", ("tests/test_bad_inputs.py -k lambda_unpaired",)),
+             "        if self.lambda_schedule_frac is not None", ("tests/test_bad_inputs.py -k neg-lambda",)),
     Mutation("P and U no longer depend on the paired count (common random numbers broken)", "asp_dist/spec.py",
              'material = {"base": self.base_fields(), "paired": spec.paired}',
              'material = {"base": self.base_fields()}', ("tests/test_golden_rows.py",)),
@@ -92,7 +92,9 @@ def run(mutation: Mutation) -> tuple[bool, float, str]:
         for selection in mutation.tests:
             proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", "-n", "0",
                                    *pytest_args(selection)], cwd=ROOT, capture_output=True, text=True)
-            if proc.returncode == 1:  # tests ran and failed (2+: collection errors, usage, no tests: not a catch)
+            if proc.returncode == 5:
+                return False, time.monotonic() - start, f"no test selected by {selection!r}"
+            if proc.returncode == 1:  # tests ran and failed (2+: collection errors, usage: not a catch)
                 lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAILED")]
                 failed.append(lines[0].split(" - ")[0].removeprefix("FAILED ") if lines else selection)
         return bool(failed), time.monotonic() - start, "; ".join(failed) or "nothing failed"
