@@ -1,4 +1,4 @@
-"""`asp-dist`: run one cell, the theory, cell fields, sweeps (sweep, resume, status) and their results (stats, query).
+"""`asp-dist`: one cell, the theory, cell fields, sweeps (sweep, resume, status), results (stats, query, compare).
 
 Every user mistake ends the same way: one line on stderr, `asp-dist: error: ...`, exit code 2,
 and nothing already written touched. Commands raise asp_dist.errors.SpecError (or a subclass)
@@ -331,7 +331,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
-# ---- stats, query -------------------------------------------------------------------------------
+# ---- stats, compare, query ----------------------------------------------------------------------
 def parse_ranges(items: Sequence[str]) -> dict[str, tuple[int, int] | None]:
     """--paired-range DOMAIN=LO-HI|all over the paper's ranges."""
     from asp_dist.analysis import paper_paired_ranges
@@ -438,6 +438,7 @@ def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None
 
 def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: str, log) -> Path:
     from asp_dist.analysis import plot_all, run_stats, write_report, write_tables
+    from asp_dist.analysis.rliable_plots import plot_rliable
     from asp_dist.results.location import upload_tree
 
     start = time.perf_counter()
@@ -448,6 +449,7 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
     log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
     figs, notes = plot_all(result, out_dir / "figures") if figures else ([], [])
     if figures:
+        figs += plot_rliable(result, out_dir / "figures")
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
     report = write_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command)
     if upload_to is not None:
@@ -493,6 +495,21 @@ def check_metric(sweeps: Sequence[str], results: str, metric: str) -> None:
             check_columns([metric], [n for n in names if n.startswith("eval_")])
         except SpecError as e:
             raise SpecError(f"--metric: {e}") from None
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Exit 0 when A and B are equivalent, 1 when not; a bad input is a SpecError (exit 2)."""
+    from asp_dist.analysis.compare import parse_margin, run_compare
+
+    if args.bootstrap < 100:
+        raise SpecError("--bootstrap must be at least 100 resamples")
+    if args.seed < 0:
+        raise SpecError(f"--seed must be >= 0, got {args.seed}")
+    margin = parse_margin(args.margin) if args.margin is not None else None
+    result = run_compare(args.a, args.b, domain=args.domain, metric=args.metric, by=args.by, margin=margin,
+                         n_boot=args.bootstrap, seed=args.seed, results=args.results)
+    print(result.text(markdown=args.markdown))
+    return 0 if result.equivalent else 1
 
 
 def cmd_query(args: argparse.Namespace) -> int:
@@ -633,6 +650,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-figures", action="store_true", help="tables and report only")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_stats)
+
+    p = sub.add_parser("compare", help="are two runs of the same grid equivalent? (exit 0 yes, 1 no)",
+                       description="Per group (domain, method, paired, --by columns): each run's median with its "
+                                   "bootstrap 95 %% interval, whether each lies inside the other's, and the interval "
+                                   "of the median per-trial difference A − B (against --margin). Equivalent: every "
+                                   "median inside the other's interval, no unmatched group, and with --margin every "
+                                   "difference interval inside ±margin. Exit 0 equivalent, 1 not, 2 bad input.")
+    p.add_argument("a", metavar="SWEEP_A", help="sweep name (under --results) or directory, or a .parquet file of rows")
+    p.add_argument("b", metavar="SWEEP_B", help="the same for the other run")
+    _add_results(p)
+    p.add_argument("--by", nargs="+", default=[], metavar="COL",
+                   help="extra grouping columns (e.g. vae_latent_dim)")
+    p.add_argument("--margin", metavar="M",
+                   help="equivalence margin of the per-trial difference: metric units (0.01) or a percentage of "
+                        "|B's median| (5%%)")
+    p.add_argument("--domain", help="compare this domain's rows only")
+    p.add_argument("--metric", default="eval_mixed", help="metric column (default: eval_mixed)")
+    p.add_argument("--bootstrap", type=int, default=5000, help="bootstrap resamples (default 5000)")
+    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--markdown", action="store_true", help="the table as GitHub Markdown")
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("query", help="filter a sweep's rows or run SQL on them",
                        description="Rows of one or more sweeps. --where takes a SQL boolean expression "

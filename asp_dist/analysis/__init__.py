@@ -4,8 +4,10 @@ The names below are all the CLI needs. They load on first use, so `asp_dist.anal
 stays as light as it is (no pandas, scipy or matplotlib).
 
 Modules: rank_tests (statistics on arrays), paper (PaperFacts per domain), layout (conditions,
-treatments, score), tables (StatsConfig and the tables), completeness (missing cells), job
-(compute, run_stats, write_tables), markdown, plots, report, theory.
+treatments, score), tables (StatsConfig and the tables), rliable_view (IQM, probability of
+improvement, performance profiles), completeness (missing cells), job (compute, run_stats,
+write_tables), markdown, plots, rliable_plots, report, compare (are two runs of a grid
+equivalent?), theory.
 """
 
 from __future__ import annotations

@@ -13,6 +13,8 @@ import pyarrow.parquet as pq
 from asp_dist.analysis.completeness import completeness
 from asp_dist.analysis.layout import DomainLayout, domain_layout, label_rows
 from asp_dist.analysis.markdown import to_markdown
+from asp_dist.analysis.rliable_view import TABLES as RLIABLE_TABLES
+from asp_dist.analysis.rliable_view import rliable_tables
 from asp_dist.analysis.tables import (
     StatsConfig,
     by_paired_table,
@@ -26,7 +28,8 @@ from asp_dist.analysis.tables import (
 from asp_dist.errors import SpecError
 from asp_dist.results.query import Inputs, load_rows, open_inputs
 
-TABLES = ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "knob_trend", "missing")
+RANK_TABLES = ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "knob_trend")
+TABLES = RANK_TABLES + ("missing",) + RLIABLE_TABLES
 
 
 @dataclass
@@ -34,7 +37,7 @@ class StatsResult:
     config: StatsConfig
     rows: pd.DataFrame  # deduplicated rows with added columns: condition, treatment, score
     layouts: dict[str, DomainLayout]
-    tables: dict[str, pd.DataFrame]  # one per name in TABLES
+    tables: dict[str, pd.DataFrame]  # one per name in TABLES (the rliable view's: rliable_view.py)
     inputs: Inputs | None = None
     notes: list[str] = field(default_factory=list)
     grid_known: bool = False  # every input sweep had a readable manifest.json and every file lies in one
@@ -64,7 +67,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
     if rows.empty:
         raise SpecError("no rows with a metric value to analyse")
     layouts, labelled = {}, []
-    parts: dict[str, list[pd.DataFrame]] = {name: [] for name in TABLES if name != "missing"}
+    parts: dict[str, list[pd.DataFrame]] = {name: [] for name in RANK_TABLES}
     for domain, g in rows.groupby("domain", sort=True):
         layout = domain_layout(g, cfg.metric)
         layouts[domain] = layout
@@ -83,6 +86,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
     all_rows = pd.concat(labelled, ignore_index=True)
     tables = {name: _concat(dfs) for name, dfs in parts.items()}
     tables["missing"], more, grid_known = completeness(all_rows, inputs, layouts)
+    tables.update(rliable_tables(all_rows, cfg, layouts, tables["pairwise"]))
     return StatsResult(cfg, all_rows, layouts, tables, inputs, more + notes, grid_known)
 
 

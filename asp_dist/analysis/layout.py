@@ -97,8 +97,10 @@ def fmt_value(v: Any) -> str:
 def label_rows(rows: pd.DataFrame, layout: DomainLayout, metric: str) -> pd.DataFrame:
     """Add `condition` (shared knob values), `treatment` (method + method-only knobs) and `score`."""
     rows = rows.copy()
-    rows["condition"] = [layout.condition_of(dict(zip(layout.shared_knobs, vals)))
-                         for vals in rows[layout.shared_knobs].itertuples(index=False, name=None)]
+    # (No shared knobs: one condition. Spelled out because pandas 2 iterates no tuples over zero columns.)
+    rows["condition"] = "all" if not layout.shared_knobs else [
+        layout.condition_of(dict(zip(layout.shared_knobs, vals)))
+        for vals in rows[layout.shared_knobs].itertuples(index=False, name=None)]
     treatments = []
     for rec in rows.to_dict("records"):
         knobs = layout.method_knobs.get(rec["method"], [])

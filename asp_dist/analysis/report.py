@@ -142,6 +142,82 @@ def _summary_compact(summary: pd.DataFrame) -> pd.DataFrame:
     return s[["condition", "treatment", "paired", "n", "median [Q1, Q3]", "95% CI of median", "mean ± sd"]]
 
 
+def _interval(point: float, low: float, high: float) -> str:
+    return f"{point:.2f} [{low:.2f}, {high:.2f}]"
+
+
+def all_won_lower_bound(n: int, ci: float) -> float:
+    """Lower end of the exact (Clopper–Pearson) interval of a proportion after n successes in n trials."""
+    return ((1 - ci) / 2) ** (1 / n) if n > 0 else 0.0
+
+
+def agreement_lines(agree: pd.DataFrame, ci: float) -> list[str]:
+    """Where the rliable view and the rank tests agree, and where and why they do not."""
+    if agree.empty:
+        return ["_No pair had both a probability of improvement and a rank test._\n"]
+    same = agree["agree_paired"].astype(bool)
+    lines = [f"The interval of the paired P(A > B) and the rank tests' verdict agree on **{int(same.sum())} of "
+             f"{len(agree)}** pairs (the unpaired P(A > B): {int(agree['agree_unpaired'].astype(bool).sum())} of "
+             f"{len(agree)}). A call from P(A > B) is a winner when its {int(ci * 100)} % interval lies entirely "
+             "on one side of ½.\n"]
+    for rec in agree[~same].to_dict("records"):
+        pair = f"{rec['a'].upper()} vs {rec['b'].upper()}"
+        where = f"{rec['domain']}" + (f" ({rec['condition']})" if rec["condition"] != "all" else "")
+        if rec["rank_call"] == "n.s.":
+            why = (f"P(A > B) calls *{rec['rliable_paired']}* but {rec['rank_test']} is not significant"
+                   + (f" (Wilcoxon–Holm: {rec['wilcoxon_holm_call']})" if rec["rank_test"] != "Wilcoxon" else ""))
+        elif rec["rliable_paired"] == "uncertain":
+            why = f"{rec['rank_test']} calls *{rec['rank_call']}* but the interval of P(A > B) contains ½"
+        else:
+            why = f"the two views call different winners ({rec['rliable_paired']} against {rec['rank_call']})"
+        lines.append(f"- {where}, {pair}: {why}; paired P = "
+                     f"{_interval(rec['poi_paired'], rec['poi_paired_ci_low'], rec['poi_paired_ci_high'])} over "
+                     f"{rec['n_blocks']} blocks.\n")
+    degenerate = agree[(agree["poi_paired_ci_low"] == agree["poi_paired_ci_high"])
+                       & agree["poi_paired"].isin([0.0, 1.0])]
+    if not degenerate.empty:
+        n = int(degenerate["n_blocks"].min())
+        lines.append(f"\nIn {len(degenerate)} pair(s) one treatment won every block, so every resample gives the "
+                     f"same P and the percentile interval has width 0. The bootstrap cannot show uncertainty beyond "
+                     f"what was observed: with {n} of {n} blocks won, an exact binomial {int(ci * 100)} % interval "
+                     f"of the block-win probability would reach down to {all_won_lower_bound(n, ci):.2f}.\n")
+    return lines
+
+
+def rliable_section(result: StatsResult) -> list[str]:
+    """The rliable view: aggregate IQM, P(A > B) beside the rank tests' verdicts, where the views differ."""
+    t, cfg = result.tables, result.config
+    parts = ["\n## The rliable view: IQM, probability of improvement, performance profiles\n\n",
+             "Beside the rank tests, the statistics of Agarwal et al. (NeurIPS 2021, rliable): interquartile means "
+             "with stratified-bootstrap intervals and the probability that one method beats another, on a "
+             "normalised score (0 = PC's median with the least paired data of the condition, 1 = the base pair's "
+             "own self-play score; `stats/normalisation.md`). Definitions under *The tests*.\n\n"]
+    agg = t.get("aggregate", pd.DataFrame())
+    if not agg.empty:
+        parts.append("**IQM of the normalised score** over each domain's paired range:\n\n")
+        wide = agg.assign(value=[_interval(p, lo, hi) for p, lo, hi in zip(agg["iqm_norm"], agg["ci_low"],
+                                                                             agg["ci_high"])])
+        wide = wide.pivot(index="scope", columns="treatment", values="value")
+        wide = wide.reindex(index=list(dict.fromkeys(agg["scope"])), columns=treatment_order(agg["treatment"]))
+        parts.append(to_markdown(wide.reset_index()))
+    agree = t.get("rliable_agreement", pd.DataFrame())
+    if not agree.empty:
+        parts.append("\n**P(A > B) and the rank tests**, per condition over the paired range:\n\n")
+        shown = pd.DataFrame({
+            "domain": agree["domain"], "condition": agree["condition"], "paired range": agree["paired_range"],
+            "pair": [f"P({a.upper()} > {b.upper()})" for a, b in zip(agree["a"], agree["b"])],
+            "paired (blocks)": [_interval(p, lo, hi) for p, lo, hi in
+                                zip(agree["poi_paired"], agree["poi_paired_ci_low"], agree["poi_paired_ci_high"])],
+            "unpaired (runs)": [_interval(p, lo, hi) for p, lo, hi in
+                                zip(agree["poi"], agree["poi_ci_low"], agree["poi_ci_high"])],
+            "P says": agree["rliable_paired"], "rank test": agree["rank_test"], "rank test says": agree["rank_call"],
+            "Wilcoxon–Holm says": agree["wilcoxon_holm_call"], "agree": agree["agree_paired"]})
+        parts.append(to_markdown(shown))
+        parts.append("\n")
+    parts.extend(agreement_lines(agree, cfg.ci))
+    return parts
+
+
 def min_wilcoxon_p(n: int) -> float:
     """Smallest two-sided p an exact Wilcoxon signed-rank test can give with n non-zero differences."""
     return 2.0 / 2 ** n if n > 0 else 1.0
@@ -210,6 +286,8 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
     parts.append(to_markdown(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
                                                "min_paired_reaching", "median_there"]))
 
+    parts.extend(rliable_section(result))
+
     parts.append("\n## What was run\n\n")
     parts.append(to_markdown(grid_description(result)))
     missing = t["missing"]
@@ -253,7 +331,9 @@ def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                                              "median_diff", "wins_a", "ties", "wins_b", "p_nemenyi", "p_wilcoxon",
                                              "p_holm", "better", "significant", "views_agree"]))
     parts.append("\nEvery table is also in `stats/<name>.parquet` and `stats/<name>.md` "
-                 "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, missing).\n")
+                 "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, missing; the rliable "
+                 "view's normalisation, iqm, aggregate, improvement, improvement_by_paired, profiles, "
+                 "rliable_agreement).\n")
 
     parts.append("\n## The tests\n\n" + METHODS_TEXT.format(alpha=cfg.alpha, n_boot=cfg.n_boot, ci=int(cfg.ci * 100),
                                                             seed=cfg.seed,
@@ -291,4 +371,14 @@ METHODS_TEXT = """\
 - **Trend with a knob.** Spearman's ρ between a numeric knob (≥ 3 values) and the per-block
   difference ASP − other.
 - Metric directions come from the rows (`<metric>_higher_is_better`, `metric_directions`).
+- **The rliable view** (Agarwal et al., NeurIPS 2021; asp_dist/analysis/rliable_view.py). A *task* is
+  a (domain, condition, paired count). *Normalised score*: (score − zero) / (one − zero) per
+  condition, zero = PC's median at 0 paired (else at the smallest count), one = the median of the
+  base pair's own self-play score (`eval_self_play_base`), both direction-corrected
+  (`stats/normalisation.md`). *IQM*: the mean of the middle half of the runs (⌊n/4⌋ dropped at each
+  end). *Stratified bootstrap*: trials resampled within every task independently, {n_boot}
+  resamples, {ci} % percentile interval. *P(A > B)*, unpaired: P(X > Y) + ½ P(X = Y) over the runs of
+  a task, averaged over tasks (rliable's probability of improvement); paired: the same over blocks
+  (1 win, ½ tie, 0 loss), blocks resampled within tasks. *Performance profile*: the fraction of runs
+  with normalised score > τ. Pooled statistics use the domain's paired range, like the rank tests.
 """
