@@ -653,7 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compare", help="are two runs of the same grid equivalent? (exit 0 yes, 1 no)",
                        description="Per group (domain, method, paired, --by columns): each run's median with its "
-                                   "bootstrap 95 %% interval, whether each lies inside the other's, and the interval "
+                                   "bootstrap 95 % interval, whether each lies inside the other's, and the interval "
                                    "of the median per-trial difference A − B (against --margin). Equivalent: every "
                                    "median inside the other's interval, no unmatched group, and with --margin every "
                                    "difference interval inside ±margin. Exit 0 equivalent, 1 not, 2 bad input.")
