@@ -154,6 +154,46 @@ class Domain(ABC):
         return None
 
 
+
+class GameDomain(Domain):
+    """A Domain whose torch half is the sibling module ``game`` of its card's package (Domain.game), with
+    one function per method, taking the method's arguments without ``self``: each method here calls it.
+    The optional ones (init_self_play, figure_data) fall back to Domain's defaults where the game has no
+    such function. The built-in domains are written this way; a domain may as well subclass Domain and
+    implement the methods itself."""
+
+    def train_base(self, spec, seed, progress=None):
+        return self.game.train_base(spec, seed, progress)
+
+    def paired(self, spec, base, n, gen):
+        return self.game.paired(spec, base, n, gen)
+
+    def unpaired(self, spec, base, size, gen):
+        return self.game.unpaired(spec, base, size, gen)
+
+    def new_agents(self, spec, seed):
+        return self.game.new_agents(spec, seed)
+
+    def init_self_play(self, spec, agents, gen):
+        own = getattr(self.game, "init_self_play", None)
+        return own(spec, agents, gen) if own is not None else super().init_self_play(spec, agents, gen)
+
+    def self_play_step(self, spec, agents, state, gen):
+        return self.game.self_play_step(spec, agents, state, gen)
+
+    def paired_loss(self, spec, agents, paired):
+        return self.game.paired_loss(spec, agents, paired)
+
+    def convention_outputs(self, spec, agents, n, gen):
+        return self.game.convention_outputs(spec, agents, n, gen)
+
+    def evaluate(self, spec, base, agents, gen):
+        return self.game.evaluate(spec, base, agents, gen)
+
+    def figure_data(self, spec, base, agents):
+        own = getattr(self.game, "figure_data", None)
+        return own(spec, base, agents) if own is not None else super().figure_data(spec, base, agents)
+
 def check_domain(domain: Domain, spec: CellSpec) -> None:
     """Contract checker (PettingZoo-style): same seed -> identical base, P, U, rollouts and scores.
 

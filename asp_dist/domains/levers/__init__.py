@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -38,7 +38,7 @@ POOL = 1024  # paired games are the first n of a fixed pool, so P(n) is a prefix
 
 
 # ---- the domain ----------------------------------------------------------------------------------
-class LeversDomain(Domain):
+class LeversDomain(GameDomain):
     name = "levers"
     channels = ("f1", "f2")
     accept_field = "levers_accept_reward"
@@ -93,37 +93,6 @@ class LeversDomain(Domain):
 
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"f1": spec.levers_hidden, "f2": spec.levers_hidden}
-
-    # ---- the torch half (game.py), imported on first call ------------------------------------------
-    def train_base(self, spec, seed, progress=None):
-        return self.game.train_base(spec, seed, progress)
-
-    def paired(self, spec, base, n, gen):
-        return self.game.paired(spec, base, n, gen)
-
-    def unpaired(self, spec, base, size, gen):
-        return self.game.unpaired(spec, base, size, gen)
-
-    def new_agents(self, spec, seed):
-        return self.game.new_agents(spec, seed)
-
-    def init_self_play(self, spec, agents, gen):
-        return self.game.init_self_play(spec, agents, gen)
-
-    def self_play_step(self, spec, agents, state, gen):
-        return self.game.self_play_step(spec, agents, state, gen)
-
-    def paired_loss(self, spec, agents, paired):
-        return self.game.paired_loss(spec, agents, paired)
-
-    def convention_outputs(self, spec, agents, n, gen):
-        return self.game.convention_outputs(spec, agents, n, gen)
-
-    def evaluate(self, spec, base, agents, gen):
-        return self.game.evaluate(spec, base, agents, gen)
-
-    def figure_data(self, spec, base, agents):
-        return self.game.figure_data(spec, base, agents)
 
 
 def __getattr__(name: str) -> Any:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 POOL = 4096  # paired tuples are the first n of a fixed pool of base episodes
 
 
-class ParticlesDomain(Domain):
+class ParticlesDomain(GameDomain):
     name = "particles"
     channels = ("message",)
     accept_field = "particles_accept_return"
@@ -99,34 +99,6 @@ class ParticlesDomain(Domain):
 
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"message": spec.particles_message_dim}
-
-    # ---- the torch half (game.py), imported on first call ------------------------------------------
-    def train_base(self, spec, seed, progress=None):
-        return self.game.train_base(spec, seed, progress)
-
-    def paired(self, spec, base, n, gen):
-        return self.game.paired(spec, base, n, gen)
-
-    def unpaired(self, spec, base, size, gen):
-        return self.game.unpaired(spec, base, size, gen)
-
-    def new_agents(self, spec, seed):
-        return self.game.new_agents(spec, seed)
-
-    def init_self_play(self, spec, agents, gen):
-        return self.game.init_self_play(spec, agents, gen)
-
-    def self_play_step(self, spec, agents, state, gen):
-        return self.game.self_play_step(spec, agents, state, gen)
-
-    def paired_loss(self, spec, agents, paired):
-        return self.game.paired_loss(spec, agents, paired)
-
-    def convention_outputs(self, spec, agents, n, gen):
-        return self.game.convention_outputs(spec, agents, n, gen)
-
-    def evaluate(self, spec, base, agents, gen):
-        return self.game.evaluate(spec, base, agents, gen)
 
 
 def __getattr__(name: str) -> Any:

@@ -25,7 +25,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from asp_dist.data.mnist import PIXELS
-from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 PAIRED_BLOCK = 256  # paired examples come from a pool drawn and encoded in blocks of this size
 
 
-class VAEDomain(Domain):
+class VAEDomain(GameDomain):
     name = "vae"
     channels = ("latent",)
     accept_field = None  # every base is kept; its test MSE is recorded as base_score
@@ -92,34 +92,6 @@ class VAEDomain(Domain):
 
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
         return {"latent": spec.vae_latent_dim}
-
-    # ---- the torch half (game.py), imported on first call ------------------------------------------
-    def train_base(self, spec, seed, progress=None):
-        return self.game.train_base(spec, seed, progress)
-
-    def paired(self, spec, base, n, gen):
-        return self.game.paired(spec, base, n, gen)
-
-    def unpaired(self, spec, base, size, gen):
-        return self.game.unpaired(spec, base, size, gen)
-
-    def new_agents(self, spec, seed):
-        return self.game.new_agents(spec, seed)
-
-    def self_play_step(self, spec, agents, state, gen):
-        return self.game.self_play_step(spec, agents, state, gen)
-
-    def paired_loss(self, spec, agents, paired):
-        return self.game.paired_loss(spec, agents, paired)
-
-    def convention_outputs(self, spec, agents, n, gen):
-        return self.game.convention_outputs(spec, agents, n, gen)
-
-    def evaluate(self, spec, base, agents, gen):
-        return self.game.evaluate(spec, base, agents, gen)
-
-    def figure_data(self, spec, base, agents):
-        return self.game.figure_data(spec, base, agents)
 
 
 def __getattr__(name: str) -> Any:
