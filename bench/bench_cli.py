@@ -9,7 +9,9 @@ and one cell file per row of results/examples/paper-packed-2.parquet (the 1,470 
 with store.write_row: the layout `status` reads). `--rows N` writes only the first N rows (the rest pending).
 
 Rows of the table: `python -c pass` (the interpreter's own start, the floor), `--help`, `fields`,
-`fields --domain vae`, `status paper`, and with --query `query paper --sql "SELECT count(*) FROM cells"`
+`fields --domain vae`, `status paper` twice: with no verdict index (every cell file's footer is parsed: a
+sweep whose files some other process wrote) and after the index a sweep's driver keeps (cells/.verified.json,
+written when a sweep starts and ends: what a user meets after `sweep` or `resume`), and with --query `query paper --sql "SELECT count(*) FROM cells"`
 (pandas and DuckDB: slower). Targets on an idle machine: --help <= 0.5 s, status <= 1 s. None of these
 commands imports torch or Ray (tests/test_cli_imports.py); the numbers say what that buys.
 """
@@ -50,6 +52,19 @@ def build_sweep(root: Path, rows: int | None) -> dict[str, int]:
     return {"cells": len(specs), "rows": len(table) if rows is None else min(rows, len(table)), "written": written}
 
 
+def store_index(root: Path) -> Path:
+    from asp_dist.results import store
+
+    return store.cells_dir(root / SWEEP) / store.VERDICTS_FILE
+
+
+def remember_verdicts(root: Path) -> None:
+    """What the sweep's driver does when it starts and ends: count the cells and keep the verdicts."""
+    from asp_dist.results import store
+
+    store.done_cell_ids(root / SWEEP, remember=True)
+
+
 def time_command(argv: list[str], repeats: int) -> list[float]:
     """Wall seconds of `python -m asp_dist ARGV` (or of `python ARGV` for the floor), each in a fresh process."""
     cmd = [sys.executable, *argv] if argv[:1] == ["-c"] else [sys.executable, "-m", "asp_dist", *argv]
@@ -84,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             "--help": ["--help"],
             "fields": ["fields"],
             "fields --domain vae": ["fields", "--domain", "vae"],
+            f"status {SWEEP} (no index)": ["status", SWEEP, "--results", str(root)],
             f"status {SWEEP}": ["status", SWEEP, "--results", str(root)],
         }
         if args.query:
@@ -91,7 +107,12 @@ def main(argv: list[str] | None = None) -> int:
                                                          "--sql", "SELECT count(*) FROM cells"]
         load_before = os.getloadavg()
         results = {}
+        index = store_index(root)
         for name, command in commands.items():
+            if name.endswith("(no index)"):
+                index.unlink(missing_ok=True)
+            elif name.startswith("status"):
+                remember_verdicts(root)
             times = time_command(command, args.repeats)
             results[name] = {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times),
                              "runs": times}

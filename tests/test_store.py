@@ -247,3 +247,37 @@ def test_damaged_cell_files_are_found_and_set_aside_and_valid_ones_never_touched
     assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in valid} == valid and stray.exists()
     assert store.damaged_cells(tmp_path, grid) == {} and store.set_aside_damaged(tmp_path, grid) == []
     assert store.write_row(tmp_path, extra[3], "s"), "the dangling link's cell can be written again"
+
+
+def test_verdict_index_spares_the_footers_of_known_files_and_never_hides_damage(rows, tmp_path, monkeypatch):
+    """The sweep's driver keeps its good verdicts in cells/.verified.json, so the next process (`status`) does
+    not parse the footers again; a file changed since (cut, rewritten, replaced) is verified afresh, a broken
+    index is ignored, and a reader never writes the index."""
+    for row in rows:
+        assert store.write_row(tmp_path, row, "s")
+    index = store.cells_dir(tmp_path) / store.VERDICTS_FILE
+    paths = store.cell_files(tmp_path)
+    assert len(paths) == 3 and not index.exists(), "a reader writes nothing"
+    assert store.cell_files(tmp_path, remember=True) == paths and index.is_file()
+
+    def fresh_process():  # what a new interpreter starts with
+        monkeypatch.setattr(store, "_CHECKED", {})
+        monkeypatch.setattr(store, "_INDEXED", {})
+
+    fresh_process()
+    opened = []
+    real = store.parquet_file
+    monkeypatch.setattr(store, "parquet_file", lambda p: opened.append(p) or real(p))
+    assert store.cell_files(tmp_path) == paths and opened == [], "known files are not opened again"
+
+    cut, replaced, kept = paths
+    cut.write_bytes(cut.read_bytes()[:200])
+    (tmp_path / "other.parquet").write_bytes(kept.read_bytes())
+    os.replace(tmp_path / "other.parquet", replaced)  # another cell's row under this name: a new inode
+    fresh_process()
+    assert store.cell_files(tmp_path) == [kept]
+    assert sorted(opened) == sorted([cut, replaced]), "only the changed files are verified again"
+
+    (store.cells_dir(tmp_path) / store.VERDICTS_FILE).write_text('{"version": 1, "good": [1, 2]}')
+    fresh_process()
+    assert store.cell_files(tmp_path) == [kept]

@@ -35,6 +35,7 @@ atomically, never overwritten; a failure record or the manifest is one whole-obj
 from __future__ import annotations
 
 import json
+import os
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -118,20 +119,21 @@ def visible(path: AnyPath, root: AnyPath) -> bool:
     return not any(p.startswith((".", "_")) for p in path.relative_to(root).parts)
 
 
-def cell_files(sweep_dir: str | AnyPath, strict: bool = False) -> list[AnyPath]:
+def cell_files(sweep_dir: str | AnyPath, strict: bool = False, remember: bool = False) -> list[AnyPath]:
     """The finished cells' Parquet files of a sweep, sorted; temp files of unfinished writes are left out.
 
     Each file is verified to be what the store writes (cell_file_problem): one row, whose cell_id is the
     file's name and whose domain and method are its directories', and no cell twice. A file that is not
     (stray, planted, truncated, copied) is never counted: it is named in a warning on stderr, or, with
-    `strict`, refused with a SchemaError."""
+    `strict`, refused with a SchemaError. `remember`: keep the verdicts in the sweep's verdict index (the
+    sweep's driver does, under the sweep's lock; readers only read the index, so they never write)."""
     root = cells_dir(sweep_dir)
     if not isinstance(root, S3Path) and not root.is_dir():  # on S3 the listing below answers that too
         return []
     good: list[AnyPath] = []
     seen: dict[str, AnyPath] = {}
     paths = sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
-    for path, problem in zip(paths, _problems(paths, root)):
+    for path, problem in zip(paths, _problems(paths, root, remember)):
         if problem is None and path.stem in seen:
             problem = f"repeats cell {path.stem}, already in {seen[path.stem]}"
         if problem is not None:
@@ -145,16 +147,71 @@ def cell_files(sweep_dir: str | AnyPath, strict: bool = False) -> list[AnyPath]:
 _CHECKED: dict[str, tuple[tuple[int, int, int], str | None]] = {}  # path -> (inode, size, mtime), verdict
 VERIFY_THREADS = 4  # footers are parsed (and on S3 fetched) in parallel: pyarrow releases the GIL meanwhile
 
+# The verdicts the sweep's driver reached, kept on disk so that the next process (`asp-dist status`, `query`,
+# a resumed driver) does not parse 1,470 footers again. A cache, never the truth: an entry counts only while the file keeps the
+# inode, size and mtime it had when it was found good (a truncated, rewritten or copied file is verified
+# again), and a missing, stale or unreadable index only costs the time it saves. Local disk only (on S3 the
+# listing already gives size and Last-Modified, and status is dominated by the requests).
+VERDICTS_FILE = ".verified.json"  # in cells/: a hidden name, so no reader of the dataset ever sees it
+_VERDICTS_VERSION = 1
+_INDEXED: dict[str, dict[str, list[int]]] = {}  # cells/ root -> the good verdicts its index holds (as read or written)
 
-def _problems(paths: list[AnyPath], root: AnyPath) -> list[str | None]:
+
+def _load_verdicts(root: AnyPath) -> None:
+    """Read root's verdict index into _CHECKED once per process (verdicts already reached here win)."""
+    if isinstance(root, S3Path) or str(root) in _INDEXED:
+        return
+    _INDEXED[str(root)] = {}
+    try:
+        index = json.loads((root / VERDICTS_FILE).read_text())
+        good = index["good"] if index.get("version") == _VERDICTS_VERSION else {}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return
+    for rel, key in good.items() if isinstance(good, dict) else ():
+        if isinstance(key, list) and len(key) == 3 and all(isinstance(k, int) for k in key):
+            _CHECKED.setdefault(str(root / rel), (tuple(key), None))
+            _INDEXED[str(root)][rel] = key
+
+
+def _save_verdicts(root: AnyPath, paths: list[AnyPath]) -> None:
+    """Write the good verdicts of `paths` as root's index, if it does not hold exactly those (tmp file +
+    rename: a reader sees the old or the new index whole). Best effort: a read-only or full disk leaves the
+    index as it was."""
+    if isinstance(root, S3Path):
+        return
+    good = {}
+    for path in paths:
+        cached = _CHECKED.get(str(path))
+        if cached is not None and cached[1] is None:
+            good[path.relative_to(root).as_posix()] = list(cached[0])
+    if _INDEXED.get(str(root)) == good:
+        return
+    tmp = root / f".verified.{os.getpid()}.tmp"
+    try:
+        tmp.write_text(json.dumps({"version": _VERDICTS_VERSION, "good": good}, separators=(",", ":")))
+        os.replace(tmp, root / VERDICTS_FILE)
+        _INDEXED[str(root)] = good
+    except OSError:
+        tmp.unlink(missing_ok=True)
+
+
+def _problems(paths: list[AnyPath], root: AnyPath, remember: bool = False) -> list[str | None]:
     """cell_file_problem of each path, in order; a large sweep's files in a few threads (status of a
-    1,470-cell sweep is mostly this)."""
+    1,470-cell sweep is mostly this, unless the verdict index already knows the files). `remember`: bring
+    the index up to date."""
+    _load_verdicts(root)
     if len(paths) < 64:
-        return [cell_file_problem(p, root) for p in paths]
-    from concurrent.futures import ThreadPoolExecutor
+        problems = [cell_file_problem(p, root) for p in paths]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(VERIFY_THREADS) as pool:
-        return list(pool.map(lambda p: cell_file_problem(p, root), paths))
+        with ThreadPoolExecutor(VERIFY_THREADS) as pool:
+            problems = list(pool.map(lambda p: cell_file_problem(p, root), paths))
+    if remember:
+        _save_verdicts(root, paths)
+    return problems
+
+
 _WARNED: set[tuple[str, str]] = set()
 
 
@@ -216,9 +273,9 @@ def curve_files(sweep_dir: str | AnyPath) -> list[AnyPath]:
     return sorted(p for p in root.rglob("*.parquet") if visible(p, root) and p.is_file())
 
 
-def done_cell_ids(sweep_dir: str | AnyPath, strict: bool = False) -> set[str]:
-    """Cells with a finished, verified Parquet file (the file name is the cell id)."""
-    return {p.stem for p in cell_files(sweep_dir, strict)}
+def done_cell_ids(sweep_dir: str | AnyPath, strict: bool = False, remember: bool = False) -> set[str]:
+    """Cells with a finished, verified Parquet file (the file name is the cell id); `remember`: cell_files."""
+    return {p.stem for p in cell_files(sweep_dir, strict, remember)}
 
 
 def is_done(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> bool:

@@ -469,10 +469,11 @@ def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:
     return specs
 
 
-def finished_and_failed(sweep_dir: AnyPath, grid: Iterable[str]) -> tuple[set[str], set[str]]:
-    """Cells of the grid with a row, and cells recorded as failed that have no row (a retry may have won)."""
+def finished_and_failed(sweep_dir: AnyPath, grid: Iterable[str], remember: bool = False) -> tuple[set[str], set[str]]:
+    """Cells of the grid with a row, and cells recorded as failed that have no row (a retry may have won).
+    `remember`: the driver keeps its verdicts in the sweep's verdict index (store.cell_files)."""
     grid = set(grid)
-    done = store.done_cell_ids(sweep_dir) & grid
+    done = store.done_cell_ids(sweep_dir, remember=remember) & grid
     failed = (set(store.failed_cells(sweep_dir)) & grid) - done
     return done, failed
 

@@ -972,7 +972,7 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
                 for path, moved_to, problem in store.set_aside_damaged(sweep_dir, {s.cell_id: (s.domain, s.method)
                                                                                    for s in specs}):
                     stream.write(f"asp-dist: warning: {path} {problem}: moved to {moved_to}; the cell trains again\n")
-                done, _ = ledger.finished_and_failed(sweep_dir, grid)
+                done, _ = ledger.finished_and_failed(sweep_dir, grid, remember=True)  # status reads no footer again
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
                 pending = [u for u in units if not set(u.cell_ids) <= done]
@@ -988,7 +988,7 @@ def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, work
                         _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
-                done, failed = ledger.finished_and_failed(sweep_dir, grid)
+                done, failed = ledger.finished_and_failed(sweep_dir, grid, remember=True)
                 counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
                 counter.finish()
                 return SweepResult(name, sweep_dir, len(specs), len(done), len(failed))
