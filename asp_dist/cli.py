@@ -380,6 +380,20 @@ def _check_domain(domain: str, flag: str, item: str) -> None:
         raise SpecError(f"{flag} {item!r}: unknown domain {domain!r}; choose one of {', '.join(sorted(DOMAINS))}")
 
 
+REPORT_FORMATS = ("md", "html", "latex")  # report.md, report.html, stats/*.tex
+
+
+def parse_formats(text: str) -> tuple[str, ...]:
+    """--formats md,html,latex: which outputs besides stats/*.parquet|md (all three by default)."""
+    items = [f.strip().lower() for f in text.split(",") if f.strip()]
+    if not items:
+        raise SpecError(f"--formats {text!r} is empty; choose from {','.join(REPORT_FORMATS)}")
+    unknown = [f for f in items if f not in REPORT_FORMATS]
+    if unknown:
+        raise SpecError(f"--formats {text!r}: unknown format {unknown[0]!r}; choose from {','.join(REPORT_FORMATS)}")
+    return tuple(f for f in REPORT_FORMATS if f in items)
+
+
 def check_stats_out(out: str) -> Path:
     """Refuse a stats --out that lies inside a sweep's tree or is a file, before any work is done."""
     from asp_dist.results.query import sweep_containing
@@ -413,8 +427,10 @@ def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
 
 
 def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None, figures: bool = True,
-                  results: str | Path = store.DEFAULT_RESULTS, command: str = "", log=print) -> Path:
-    """The whole stats job: read rows, compute tables, write stats/, figures/ and report.md. Returns report.md.
+                  results: str | Path = store.DEFAULT_RESULTS, command: str = "", log=print,
+                  formats: Sequence[str] = REPORT_FORMATS) -> Path:
+    """The whole stats job: read rows, compute tables, write stats/, figures/ and the report in `formats`
+    (report.md, report.html, stats/*.tex). Returns report.md (else report.html, else stats/).
     For a single sweep on S3 (and no --out) they go beside it in the bucket."""
     from asp_dist.results.query import find_inputs
 
@@ -430,14 +446,19 @@ def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None
     else:
         out_dir = stats_output_dir(located, out)
     try:
-        return _stats_job(located, out_dir, upload_to, cfg, figures, command, log)
+        return _stats_job(located, out_dir, upload_to, cfg, figures, command, log, formats)
     finally:
         if scratch is not None:
             scratch.cleanup()
 
 
-def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: str, log) -> Path:
-    from asp_dist.analysis import plot_all, run_stats, write_report, write_tables
+def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: str, log,
+               formats: Sequence[str] = REPORT_FORMATS) -> Path:
+    from asp_dist.analysis import plot_all, run_stats, write_tables
+    from asp_dist.analysis.document import render_markdown, write_atomic
+    from asp_dist.analysis.html_report import write_html
+    from asp_dist.analysis.latex_tables import write_latex_tables
+    from asp_dist.analysis.report import build_report
     from asp_dist.analysis.rliable_plots import plot_rliable
     from asp_dist.results.location import upload_tree
 
@@ -447,18 +468,31 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
         f"({', '.join(sorted(result.layouts))}) in {time.perf_counter() - start:.1f} s")
     written = write_tables(result, out_dir)
     log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
+    latex = write_latex_tables(result, out_dir) if "latex" in formats else {}
+    if latex:
+        log(f"wrote {len(latex)} LaTeX tables ({', '.join(p.name for p in latex.values())}) to {out_dir / 'stats'}")
     figs, notes = plot_all(result, out_dir / "figures") if figures else ([], [])
     if figures:
         figs += plot_rliable(result, out_dir / "figures")
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
-    report = write_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command)
+    doc = build_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command,
+                       latex_tables=list(latex))
+    reports = []
+    if "md" in formats:
+        reports.append(write_atomic(out_dir / "report.md", render_markdown(doc)))
+    if "html" in formats:
+        reports.append(write_html(doc))
+    report = reports[0] if reports else out_dir / "stats"
     if upload_to is not None:
         written = upload_tree(out_dir, upload_to)
-        log(f"uploaded {len(written)} files (stats/, figures/, report.md) to {upload_to}")
+        log(f"uploaded {len(written)} files (stats/, figures/, {', '.join(p.name for p in reports) or 'no report'}) "
+            f"to {upload_to}")
         report = upload_to / report.relative_to(out_dir).as_posix()
+        reports = [upload_to / p.relative_to(out_dir).as_posix() for p in reports]
     for note in result.notes + notes:
         log(f"note: {note}")
-    log(f"report: {report} ({time.perf_counter() - start:.1f} s in all)")
+    log(f"report: {', '.join(str(p) for p in reports) or 'none (--formats ' + ','.join(formats) + ')'} "
+        f"({time.perf_counter() - start:.1f} s in all)")
     return report
 
 
@@ -473,6 +507,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
         raise SpecError(f"--seed must be >= 0, got {args.seed}")
     if not args.metric.strip():
         raise SpecError("--metric is empty; name a metric column such as eval_mixed")
+    formats = parse_formats(args.formats)
     paired_ranges, thresholds = parse_ranges(args.paired_range), parse_thresholds(args.threshold)
     if args.out is not None:
         check_stats_out(args.out)
@@ -480,7 +515,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
     cfg = StatsConfig(metric=args.metric, paired_ranges=paired_ranges, thresholds=thresholds, alpha=args.alpha,
                       n_boot=args.bootstrap, seed=args.seed)
     run_stats_job(args.sweeps, args.out, cfg, figures=not args.no_figures, results=args.results,
-                  command="asp-dist " + shlex.join(args.argv),
+                  command="asp-dist " + shlex.join(args.argv), formats=formats,
                   log=(lambda *a: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr)))
     return 0
 
@@ -633,12 +668,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_results(p)
     p.set_defaults(func=cmd_status)
 
-    p = sub.add_parser("stats", help="statistics, figures and report.md of one or more sweeps",
-                       description="Turn a sweep's rows into tables (stats/), figures (figures/) and report.md.")
+    p = sub.add_parser("stats", help="statistics, figures and report (md, html, LaTeX tables) of one or more sweeps",
+                       description="Turn a sweep's rows into tables (stats/), figures (figures/), report.md and "
+                                   "report.html, and LaTeX tables (stats/*.tex).")
     p.add_argument("sweeps", nargs="+", metavar="SWEEP",
                    help="sweep name (under --results) or directory, any directory or .parquet files; several merge")
     _add_results(p)
-    p.add_argument("--out", help="directory for stats/, figures/ and report.md (default: the single sweep directory)")
+    p.add_argument("--out", help="directory for stats/, figures/ and the report (default: the single sweep directory)")
     p.add_argument("--metric", default="eval_mixed", help="metric column to analyse (default: eval_mixed)")
     p.add_argument("--paired-range", action="append", default=[], metavar="DOMAIN=LO-HI",
                    help="paired counts of the Friedman test (defaults: the paper's per domain, others all)")
@@ -647,6 +683,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
     p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--formats", default=",".join(REPORT_FORMATS), metavar="LIST",
+                   help="report outputs, comma-separated: md (report.md), html (report.html, self-contained), "
+                        "latex (stats/*.tex booktabs tables); default: md,html,latex")
     p.add_argument("--no-figures", action="store_true", help="tables and report only")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_stats)

@@ -6,3 +6,13 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 "$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
 "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test]"
+
+# tests/test_report_html.py opens report.html in Debian's headless Chromium (it skips without one).
+# As root with apt-get, install it when missing; a failure only warns, the Python install stands.
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1 \
+    && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  apt_install() { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1; }
+  if ! { apt_install || { apt-get update -qq >/dev/null 2>&1 && apt_install; }; }; then
+    echo "install.sh: warning: apt-get could not install chromium; the report.html browser check will skip" >&2
+  fi
+fi

@@ -370,6 +370,14 @@ case("stats-ghost", ["stats", "ghost", *R, "--no-figures"], "does not exist")
 case("stats-out-inside-cells", [*ST, "--out", "{results}/tiny/cells/stats"], "lies inside the sweep")
 case("stats-out-is-a-file", [*ST, "--out", "{scratch}/existing.csv"], "cannot create the output directory")
 case("stats-not-parquet", ["stats", "{scratch}/existing.csv", "--out", "{root}/out"], "is not a .parquet file")
+case("stats-formats-unknown", [*ST, "--formats", "md,pdf"], "unknown format 'pdf'; choose from md,html,latex")
+case("stats-formats-empty", [*ST, "--formats", ","], "--formats ',' is empty")
+
+# compare (reads only; a case let through would compare and exit 0 or 1, not 2)
+case("compare-ghost", ["compare", "ghost", "tiny", *R], "ghost does not exist")
+case("compare-not-parquet", ["compare", "{scratch}/existing.csv", "tiny", *R], "is not a .parquet file")
+case("compare-garbage-parquet", ["compare", "tiny", "{scratch}/existing.parquet", *R], "cannot read")
+case("compare-margin", ["compare", "tiny", "tiny", *R, "--margin", "abc"], "--margin 'abc'")
 
 # select
 case("select-domain", ["select", "tiny", *R, "--domain", "chess"], "unknown domain 'chess'")
@@ -385,7 +393,8 @@ def test_there_are_at_least_a_hundred_cases_over_every_subcommand():
     assert len(CASES) >= 100
     assert len({c[0] for c in CASES}) == len(CASES), "case ids must be unique"
     commands = {argv[0] for _, argv, _, _ in CASES}
-    assert commands == {"cell", "theory", "fields", "sweep", "resume", "status", "stats", "query", "select"}
+    assert commands == {"cell", "theory", "fields", "sweep", "resume", "status", "stats", "query", "select",
+                        "compare"}
 
 
 @pytest.mark.parametrize("argv, needle, env", [c[1:] for c in CASES], ids=[c[0] for c in CASES])

@@ -7,6 +7,9 @@ test_plots.py import them from here.
 from __future__ import annotations
 
 import json
+import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -441,3 +444,135 @@ def test_conditions_are_in_natural_order():
     expected = [f"vae_latent_dim={d}" for d in (2, 8, 16, 128)]
     assert list(res.tables["tests"]["condition"]) == expected
     assert list(dict.fromkeys(res.tables["summary"]["condition"])) == expected
+
+
+# ---- the outputs: report.md, report.html, stats/*.tex ---------------------------------------------------
+
+def _tex_rows(tex: str) -> tuple[str, list[list[str]]]:
+    """A booktabs tabular's column spec and its rows split into cells (a `\\&` is text, not a separator)."""
+    spec = re.search(r"\\begin\{tabular\}\{([a-z]+)\}", tex).group(1)
+    body = tex[tex.index(r"\toprule"):tex.index(r"\bottomrule")]
+    rows = []
+    for line in body.splitlines():
+        line = line.strip()
+        if line in (r"\toprule", r"\midrule") or not line:
+            continue
+        assert line.endswith(r"\\"), line
+        rows.append(re.split(r"(?<!\\)&", line[:-2]))
+    return spec, rows
+
+
+def _braces_balance(tex: str) -> bool:
+    depth = 0
+    for text in re.sub(r"\\[{}]", "", tex).replace("\\\\", ""):
+        depth += {"{": 1, "}": -1}.get(text, 0)
+        if depth < 0:
+            return False
+    return depth == 0
+
+
+@pytest.fixture(scope="module")
+def latex_result(tmp_path_factory):
+    """A lower-is-better domain whose labels hold LaTeX specials: a condition and a treatment with `_`."""
+    from asp_dist.analysis.latex_tables import write_latex_tables
+
+    rows = make_rows(trials=range(6), higher=False, knobs={"signaling_skew": [0.0, 1.5]})
+    rows += [dict(r, method="asp", cell_id=r["cell_id"] + "-l5", lambda_unpaired=0.5)
+             for r in rows if r["method"] == "asp"]
+    res = compute(pd.DataFrame(rows), cfg())
+    out = tmp_path_factory.mktemp("latex")
+    return res, write_latex_tables(res, out)
+
+
+def test_latex_tables_are_well_formed_booktabs_tabulars(latex_result):
+    from asp_dist.analysis.latex_tables import LATEX_TABLES
+
+    res, written = latex_result
+    assert set(written) == set(LATEX_TABLES)
+    for name, path in written.items():
+        tex = path.read_text()
+        assert tex.isascii(), name  # every sign spelled as LaTeX: pdflatex needs no inputenc for it
+        assert _braces_balance(tex), name
+        assert [tex.count(r) for r in (r"\toprule", r"\bottomrule")] == [1, 1] and r"\midrule" in tex, name
+        assert tex.index(r"\toprule") < tex.index(r"\midrule") < tex.index(r"\bottomrule"), name
+        spec, rows = _tex_rows(tex)
+        assert len(rows) >= 2 and all(len(r) == len(spec) for r in rows), (name, spec, rows[:2])
+        body = "\n".join(line for line in tex.splitlines() if not line.startswith("%"))
+        assert not re.search(r"(?<!\\)[_%#]", re.sub(r"\$[^$]*\$", "", body)), name  # specials escaped
+    summary = written["summary"].read_text()
+    assert r"signaling\_skew=1.5" in summary and r"ASP[lambda\_unpaired=0.5]" in summary
+
+
+def test_latex_tables_bold_the_best_value_of_each_row_in_the_metrics_direction(latex_result):
+    from asp_dist.analysis.latex_tables import label
+
+    res, written = latex_result
+    spec, rows = _tex_rows(written["summary"].read_text())
+    header, data = [h.strip() for h in rows[0]], rows[1:]
+    asp = header.index(r"ASP[lambda\_unpaired=1]")
+    # lower is better here and ASP has the lowest error by construction: its median is bold in every row,
+    # and so is its twin ASP[lambda_unpaired=0.5] (the same rows): a tie after rounding is bold twice
+    assert all(r"\textbf" in row[asp] and r"\textbf" in row[asp - 1] for row in data)
+    assert all(sum(r"\textbf" in c for c in row) == 2 for row in data)
+    _, rows = _tex_rows(written["iqm"].read_text())
+    iqm = res.tables["iqm"]
+    for row, (_, g) in zip(rows[1:], iqm.groupby(["domain", "condition", "paired"], sort=False)):
+        best = g.loc[g["iqm_norm"].idxmax(), "treatment"]  # the largest normalised IQM, whatever the metric
+        assert r"\textbf" in row[header.index(label(best))], (row, best)
+
+
+@pytest.mark.skipif(shutil.which("pdflatex") is None,
+                    reason="no pdflatex (Debian: apt-get install texlive-latex-base texlive-latex-recommended)")
+def test_latex_tables_compile_in_a_minimal_document(latex_result, tmp_path):
+    _, written = latex_result
+    inputs = "\n\\bigskip\n".join(f"\\input{{{p.as_posix()}}}" for p in written.values())
+    (tmp_path / "doc.tex").write_text("\\documentclass{article}\n\\usepackage{booktabs}\n\\begin{document}\n"
+                                      f"{inputs}\n\\end{{document}}\n")
+    proc = subprocess.run(["pdflatex", "-interaction=nonstopmode", "-halt-on-error", "doc.tex"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:]
+    assert (tmp_path / "doc.pdf").stat().st_size > 1000
+
+
+def test_latex_escapes_and_numbers():
+    from asp_dist.analysis.latex_tables import escape, number
+
+    assert escape("a_b & 5% #1 {x} ~^ $ \\") == (r"a\_b \& 5\% \#1 \{x\} \textasciitilde{}\textasciicircum{} \$ "
+                                                 r"\textbackslash{}")
+    assert escape("Δ − ½ –") == r"$\Delta$ $-$ $\frac{1}{2}$ --"
+    assert number("-0.118") == "$-$0.118" and number("5.230e-16") == r"$5.230\times10^{-16}$"
+    assert number("-1.5e+05") == r"$-1.5\times10^{5}$" and number("–") == "--" and number("abc_d") == r"abc\_d"
+    assert number("-0") == "0" and number("-0.0") == "0.0"
+
+
+def test_stats_job_writes_report_md_html_and_latex_by_default(tmp_path):
+    from asp_dist.analysis.latex_tables import LATEX_TABLES
+    from asp_dist.cli import run_stats_job
+
+    sweep = write_sweep(tmp_path / "all", make_rows(trials=range(4)))
+    report = run_stats_job([str(sweep)], cfg=cfg(), log=lambda m: None)
+    assert report == sweep / "report.md"
+    html = (sweep / "report.html").read_text()
+    assert html.startswith("<!DOCTYPE html>") and "ASP beat PC and OSP" in html and "<svg" in html
+    figures = sorted((sweep / "figures").glob("*.svg"))
+    assert html.count('<figure class="plot"') == len(figures) > 0
+    assert f"{len(figures)} figures, each also as PNG and SVG" in report.read_text()
+    for name in LATEX_TABLES:
+        assert (sweep / "stats" / f"{name}.tex").read_text().startswith("% asp-dist stats")
+    assert "also as booktabs LaTeX" in report.read_text()
+
+
+def test_formats_choose_the_outputs(tmp_path):
+    from asp_dist.cli import main
+
+    sweep = write_sweep(tmp_path / "f", make_rows(trials=range(3)))
+    assert main(["stats", str(sweep), "--quiet", "--no-figures", "--bootstrap", "200", "--formats", "html"]) == 0
+    assert (sweep / "report.html").exists() and not (sweep / "report.md").exists()
+    assert not list((sweep / "stats").glob("*.tex")) and (sweep / "stats" / "summary.parquet").exists()
+    html = (sweep / "report.html").read_text()
+    assert "No figures" in html and "<svg" not in html and "also as booktabs LaTeX" not in html
+    out = tmp_path / "latex-only"
+    assert main(["stats", str(sweep), "--out", str(out), "--quiet", "--no-figures", "--bootstrap", "200",
+                 "--formats", "LaTeX, md"]) == 0
+    assert (out / "report.md").exists() and (out / "stats" / "summary.tex").exists()
+    assert not (out / "report.html").exists()

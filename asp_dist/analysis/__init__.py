@@ -6,8 +6,9 @@ stays as light as it is (no pandas, scipy or matplotlib).
 Modules: rank_tests (statistics on arrays), paper (PaperFacts per domain), layout (conditions,
 treatments, score), tables (StatsConfig and the tables), rliable_view (IQM, probability of
 improvement, performance profiles), completeness (missing cells), job (compute, run_stats,
-write_tables), markdown, plots, rliable_plots, report, compare (are two runs of a grid
-equivalent?), theory.
+write_tables), markdown, plots, rliable_plots, report (what the report says, as a
+document.Document), html_report (report.html), latex_tables (stats/*.tex), compare (are two runs
+of a grid equivalent?), theory.
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ import numpy as np
 import pandas as pd
 
 
-def format_cell(v: Any, digits: int = 4) -> str:
+def format_value(v: Any, digits: int = 4) -> str:
+    """A table value as text, rounded as every table of the stats job rounds it (Markdown, HTML, LaTeX)."""
     if v is None or (isinstance(v, float) and np.isnan(v)):
         return "–"
     if isinstance(v, (bool, np.bool_)):
@@ -18,7 +19,12 @@ def format_cell(v: Any, digits: int = 4) -> str:
         if v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e5):
             return f"{v:.{digits - 1}e}"
         return f"{v:.{digits}g}"
-    return str(v).replace("|", "\\|").replace("\n", " ")
+    return str(v)
+
+
+def format_cell(v: Any, digits: int = 4) -> str:
+    """format_value, made safe inside a Markdown table cell."""
+    return format_value(v, digits).replace("|", "\\|").replace("\n", " ")
 
 
 def to_markdown(df: pd.DataFrame | None, columns: Sequence[str] | None = None) -> str:

@@ -1,13 +1,14 @@
-"""report.md: what was run, whether ASP beat OSP and PC (where, and how sure), tables, figures, tests.
+"""The sweep report: what was run, whether ASP beat OSP and PC (where, and how sure), tables, figures, tests.
 
 The report is written from the stats tables only (no recomputation), so it always agrees with
 ``stats/*.parquet``. The top section answers the question at a glance; the rest documents.
+build_report says it once, as a document.Document; report.md and report.html (html_report.py)
+are two renderings of that one document.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Sequence
@@ -15,9 +16,10 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from asp_dist.analysis.document import Block, Document, Heading, Plot, Table, Text, render_markdown, write_atomic
 from asp_dist.analysis.job import StatsResult
 from asp_dist.analysis.layout import is_asp, treatment_order
-from asp_dist.analysis.markdown import format_cell, to_markdown
+from asp_dist.analysis.markdown import format_cell
 from asp_dist.analysis.paper import paper_claim
 from asp_dist.analysis.plots import Figure
 
@@ -151,15 +153,17 @@ def all_won_lower_bound(n: int, ci: float) -> float:
     return ((1 - ci) / 2) ** (1 / n) if n > 0 else 0.0
 
 
-def agreement_lines(agree: pd.DataFrame, ci: float) -> list[str]:
+def agreement_blocks(agree: pd.DataFrame, ci: float) -> list[Block]:
     """Where the rliable view and the rank tests agree, and where and why they do not."""
     if agree.empty:
-        return ["_No pair had both a probability of improvement and a rank test._\n"]
+        return [Text("_No pair had both a probability of improvement and a rank test._")]
     same = agree["agree_paired"].astype(bool)
-    lines = [f"The interval of the paired P(A > B) and the rank tests' verdict agree on **{int(same.sum())} of "
-             f"{len(agree)}** pairs (the unpaired P(A > B): {int(agree['agree_unpaired'].astype(bool).sum())} of "
-             f"{len(agree)}). A call from P(A > B) is a winner when its {int(ci * 100)} % interval lies entirely "
-             "on one side of ½.\n"]
+    blocks: list[Block] = [Text(
+        f"The interval of the paired P(A > B) and the rank tests' verdict agree on **{int(same.sum())} of "
+        f"{len(agree)}** pairs (the unpaired P(A > B): {int(agree['agree_unpaired'].astype(bool).sum())} of "
+        f"{len(agree)}). A call from P(A > B) is a winner when its {int(ci * 100)} % interval lies entirely "
+        "on one side of ½.")]
+    differ = []
     for rec in agree[~same].to_dict("records"):
         pair = f"{rec['a'].upper()} vs {rec['b'].upper()}"
         where = f"{rec['domain']}" + (f" ({rec['condition']})" if rec["condition"] != "all" else "")
@@ -170,39 +174,41 @@ def agreement_lines(agree: pd.DataFrame, ci: float) -> list[str]:
             why = f"{rec['rank_test']} calls *{rec['rank_call']}* but the interval of P(A > B) contains ½"
         else:
             why = f"the two views call different winners ({rec['rliable_paired']} against {rec['rank_call']})"
-        lines.append(f"- {where}, {pair}: {why}; paired P = "
-                     f"{_interval(rec['poi_paired'], rec['poi_paired_ci_low'], rec['poi_paired_ci_high'])} over "
-                     f"{rec['n_blocks']} blocks.\n")
+        differ.append(f"- {where}, {pair}: {why}; paired P = "
+                      f"{_interval(rec['poi_paired'], rec['poi_paired_ci_low'], rec['poi_paired_ci_high'])} over "
+                      f"{rec['n_blocks']} blocks.")
+    if differ:
+        blocks.append(Text("\n".join(differ)))
     degenerate = agree[(agree["poi_paired_ci_low"] == agree["poi_paired_ci_high"])
                        & agree["poi_paired"].isin([0.0, 1.0])]
     if not degenerate.empty:
         n = int(degenerate["n_blocks"].min())
-        lines.append(f"\nIn {len(degenerate)} pair(s) one treatment won every block, so every resample gives the "
-                     f"same P and the percentile interval has width 0. The bootstrap cannot show uncertainty beyond "
-                     f"what was observed: with {n} of {n} blocks won, an exact binomial {int(ci * 100)} % interval "
-                     f"of the block-win probability would reach down to {all_won_lower_bound(n, ci):.2f}.\n")
-    return lines
+        blocks.append(Text(
+            f"In {len(degenerate)} pair(s) one treatment won every block, so every resample gives the "
+            f"same P and the percentile interval has width 0. The bootstrap cannot show uncertainty beyond "
+            f"what was observed: with {n} of {n} blocks won, an exact binomial {int(ci * 100)} % interval "
+            f"of the block-win probability would reach down to {all_won_lower_bound(n, ci):.2f}."))
+    return blocks
 
 
-def rliable_section(result: StatsResult) -> list[str]:
+def rliable_section(result: StatsResult) -> list[Block]:
     """The rliable view: aggregate IQM, P(A > B) beside the rank tests' verdicts, where the views differ."""
     t, cfg = result.tables, result.config
-    parts = ["\n## The rliable view: IQM, probability of improvement, performance profiles\n\n",
-             "Beside the rank tests, the statistics of Agarwal et al. (NeurIPS 2021, rliable): interquartile means "
+    blocks: list[Block] = [
+        Heading(2, "The rliable view: IQM, probability of improvement, performance profiles"),
+        Text("Beside the rank tests, the statistics of Agarwal et al. (NeurIPS 2021, rliable): interquartile means "
              "with stratified-bootstrap intervals and the probability that one method beats another, on a "
              "normalised score (0 = PC's median with the least paired data of the condition, 1 = the base pair's "
-             "own self-play score; `stats/normalisation.md`). Definitions under *The tests*.\n\n"]
+             "own self-play score; `stats/normalisation.md`). Definitions under *The tests*.")]
     agg = t.get("aggregate", pd.DataFrame())
     if not agg.empty:
-        parts.append("**IQM of the normalised score** over each domain's paired range:\n\n")
         wide = agg.assign(value=[_interval(p, lo, hi) for p, lo, hi in zip(agg["iqm_norm"], agg["ci_low"],
                                                                              agg["ci_high"])])
         wide = wide.pivot(index="scope", columns="treatment", values="value")
         wide = wide.reindex(index=list(dict.fromkeys(agg["scope"])), columns=treatment_order(agg["treatment"]))
-        parts.append(to_markdown(wide.reset_index()))
+        blocks += [Text("**IQM of the normalised score** over each domain's paired range:"), Table(wide.reset_index())]
     agree = t.get("rliable_agreement", pd.DataFrame())
     if not agree.empty:
-        parts.append("\n**P(A > B) and the rank tests**, per condition over the paired range:\n\n")
         shown = pd.DataFrame({
             "domain": agree["domain"], "condition": agree["condition"], "paired range": agree["paired_range"],
             "pair": [f"P({a.upper()} > {b.upper()})" for a, b in zip(agree["a"], agree["b"])],
@@ -212,10 +218,8 @@ def rliable_section(result: StatsResult) -> list[str]:
                                 zip(agree["poi"], agree["poi_ci_low"], agree["poi_ci_high"])],
             "P says": agree["rliable_paired"], "rank test": agree["rank_test"], "rank test says": agree["rank_call"],
             "Wilcoxon–Holm says": agree["wilcoxon_holm_call"], "agree": agree["agree_paired"]})
-        parts.append(to_markdown(shown))
-        parts.append("\n")
-    parts.extend(agreement_lines(agree, cfg.ci))
-    return parts
+        blocks += [Text("**P(A > B) and the rank tests**, per condition over the paired range:"), Table(shown)]
+    return blocks + agreement_blocks(agree, cfg.ci)
 
 
 def min_wilcoxon_p(n: int) -> float:
@@ -223,127 +227,136 @@ def min_wilcoxon_p(n: int) -> float:
     return 2.0 / 2 ** n if n > 0 else 1.0
 
 
-def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Figure] = (),
-                 figure_notes: Sequence[str] = (), sources: Sequence[str] = (), command: str = "") -> Path:
+def figure_count_text(n: int) -> str:
+    """How many figures the report holds, in words a reader (and the browser check) can count against."""
+    if n == 0:
+        return "_No figures._"
+    return f"{n} figure{'s' if n != 1 else ''}, each also as PNG and SVG in `figures/`."
+
+
+def _name(result: StatsResult, out_dir: Path) -> str:
+    rows = result.rows
+    if "sweep_id" in rows and rows["sweep_id"].notna().any():
+        return ", ".join(sorted(rows["sweep_id"].dropna().astype(str).unique()))
+    return out_dir.name
+
+
+def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Figure] = (),
+                 figure_notes: Sequence[str] = (), sources: Sequence[str] = (), command: str = "",
+                 latex_tables: Sequence[str] = ()) -> Document:
+    """What the report says, once for every format (report.md, report.html): at a glance, where, data
+    efficiency, the rliable view, what was run, the figures, the tables and the tests."""
     out_dir = Path(out_dir)
     cfg, t = result.config, result.tables
-    parts: list[str] = []
-    name = ", ".join(sorted(result.rows["sweep_id"].dropna().astype(str).unique())) \
-        if "sweep_id" in result.rows and result.rows["sweep_id"].notna().any() else out_dir.name
-    parts.append(f"# Sweep report: {name}\n\n")
-    parts.append(f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} from {len(result.rows)} rows"
+    doc = Document(f"Sweep report: {_name(result, out_dir)}", out_dir)
+    doc.add(Heading(1, doc.title),
+            Text(f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} from {len(result.rows)} rows"
                  + (f" ({len(result.inputs.files)} files)" if result.inputs else "")
                  + f". Metric: `{cfg.metric}`; α = {cfg.alpha}; bootstrap {cfg.n_boot} resamples, seed {cfg.seed}."
-                 + (f" Command: `{command}`." if command else "") + "\n\n")
+                 + (f" Command: `{command}`." if command else "")))
 
-    parts.append("## At a glance: did ASP beat OSP and PC?\n\n")
-    parts.extend(line + "\n" for line in headline_sentences(result))
-    parts.append("\n" + to_markdown(glance_table(result)))
-    parts.append("\n*better / worse*: with three or more methods, the Friedman test over blocks (trial, paired) and the Nemenyi "
-                 "post-hoc are both below α (the paper's procedure); the Wilcoxon signed-rank test with Holm's correction "
-                 "is shown as a second view. With two methods, the Wilcoxon test decides. Δ = median paired difference "
-                 "ASP − other in metric units; a–t–b = blocks where ASP is better – tied – worse.\n")
+    doc.add(Heading(2, "At a glance: did ASP beat OSP and PC?"),
+            Text("\n".join(headline_sentences(result))), Table(glance_table(result)),
+            Text("*better / worse*: with three or more methods, the Friedman test over blocks (trial, paired) and the "
+                 "Nemenyi post-hoc are both below α (the paper's procedure); the Wilcoxon signed-rank test with Holm's "
+                 "correction is shown as a second view. With two methods, the Wilcoxon test decides. Δ = median paired "
+                 "difference ASP − other in metric units; a–t–b = blocks where ASP is better – tied – worse."))
     claims = [f"- {d}: the paper reports: {claim}." for d in sorted(result.layouts) if (claim := paper_claim(d))]
     if claims:
-        parts.append("\nFor comparison, the paper's findings:\n\n" + "\n".join(claims) + "\n")
+        doc.add(Text("For comparison, the paper's findings:"), Text("\n".join(claims)))
     trend = t.get("knob_trend", pd.DataFrame())
     if not trend.empty:
-        parts.append("\n**Does ASP's advantage grow with the knob?** Spearman's ρ between the knob and the per-block "
-                     "difference ASP − other (all paired counts):\n\n")
-        parts.append(to_markdown(trend, ["domain", "knob", "fixed", "a", "b", "n_blocks", "spearman_rho", "p_value",
-                                         "knob_min", "median_diff_at_min", "knob_max", "median_diff_at_max"]))
+        doc.add(Text("**Does ASP's advantage grow with the knob?** Spearman's ρ between the knob and the per-block "
+                     "difference ASP − other (all paired counts):"),
+                Table(trend, ["domain", "knob", "fixed", "a", "b", "n_blocks", "spearman_rho", "p_value",
+                              "knob_min", "median_diff_at_min", "knob_max", "median_diff_at_max"]))
 
-    parts.append("\n### Where: ASP against each method at every paired count\n\n")
-    parts.append("✓ / ✗: ASP significantly better / worse (Wilcoxon, Holm over all counts and opponents of the "
+    doc.add(Heading(3, "Where: ASP against each method at every paired count"),
+            Text("✓ / ✗: ASP significantly better / worse (Wilcoxon, Holm over all counts and opponents of the "
                  "condition); + / − / =: ASP better / worse / tied, not significant. The number is the median paired "
-                 "difference ASP − other in metric units (negative is ASP better when lower is better).\n\n")
-    parts.append(to_markdown(where_table(result)))
+                 "difference ASP − other in metric units (negative is ASP better when lower is better)."),
+            Table(where_table(result)))
     bp = t["by_paired"]
     if not bp.empty:
         typical = int(np.median(bp["n_blocks"]))
         if min_wilcoxon_p(typical) * len(bp) / max(1, bp.groupby(["domain", "condition"]).ngroups) >= cfg.alpha:
-            parts.append(f"\nWith typically {typical} blocks per count, the smallest possible two-sided Wilcoxon p is "
+            doc.add(Text(f"With typically {typical} blocks per count, the smallest possible two-sided Wilcoxon p is "
                          f"{_p(min_wilcoxon_p(typical))} before Holm's correction: per-count tests cannot reach "
-                         "significance at this size; read their direction, and the pooled test above.\n")
+                         "significance at this size; read their direction, and the pooled test above."))
 
-    parts.append("\n### Paired-data efficiency: does ASP with n match or beat the others with 2n?\n\n")
+    doc.add(Heading(3, "Paired-data efficiency: does ASP with n match or beat the others with 2n?"))
     claim = t["claim_2n"]
     if claim.empty:
-        parts.append("_Not testable: no paired counts n and 2n both present for ASP and another method._\n")
+        doc.add(Text("_Not testable: no paired counts n and 2n both present for ASP and another method._"))
     else:
+        lines = []
         for (domain, cond, other), g in claim.groupby(["domain", "condition", "other"], sort=False):
             held = [str(n) for n, h in zip(g["n"], g["holds"]) if h]
             sure = [str(n) for n, v in zip(g["n"], g["verdict"]) if v.startswith("beats")]
-            parts.append(f"- {domain} ({cond}) vs {other.upper()}: holds (medians) at n = {', '.join(held) or 'none'}"
+            lines.append(f"- {domain} ({cond}) vs {other.upper()}: holds (medians) at n = {', '.join(held) or 'none'}"
                          f" of {', '.join(str(n) for n in g['n'])}; with the 95 % interval of ASP's gain above 0 at "
-                         f"n = {', '.join(sure) or 'none'}.\n")
-        parts.append("\n" + to_markdown(claim, ["domain", "condition", "asp", "other", "n", "two_n", "median_asp_n",
-                                                "median_other_2n", "n_trials", "median_gain", "gain_ci_low",
-                                                "gain_ci_high", "verdict"]))
-        parts.append("\n*gain*: ASP at n against the other method at 2n, per trial, in metric units with positive = "
-                     "ASP better whichever way the metric points; *beats*: the gain's whole interval is above 0.\n")
-    parts.append("\nSmallest paired count whose median reaches the threshold:\n\n")
-    parts.append(to_markdown(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
-                                               "min_paired_reaching", "median_there"]))
+                         f"n = {', '.join(sure) or 'none'}.")
+        doc.add(Text("\n".join(lines)),
+                Table(claim, ["domain", "condition", "asp", "other", "n", "two_n", "median_asp_n", "median_other_2n",
+                              "n_trials", "median_gain", "gain_ci_low", "gain_ci_high", "verdict"]),
+                Text("*gain*: ASP at n against the other method at 2n, per trial, in metric units with positive = "
+                     "ASP better whichever way the metric points; *beats*: the gain's whole interval is above 0."))
+    doc.add(Text("Smallest paired count whose median reaches the threshold:"),
+            Table(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
+                                    "min_paired_reaching", "median_there"]))
 
-    parts.extend(rliable_section(result))
+    doc.add(*rliable_section(result))
 
-    parts.append("\n## What was run\n\n")
-    parts.append(to_markdown(grid_description(result)))
+    doc.add(Heading(2, "What was run"), Table(grid_description(result)))
     missing = t["missing"]
     notes = list(result.notes) + list(figure_notes)
     if notes:
-        parts.append("\n" + "\n".join(f"- {n}" for n in notes) + "\n")
+        doc.add(Text("\n".join(f"- {n}" for n in notes)))
     if missing.empty and result.grid_known:
-        parts.append("\nNo missing cells: every planned cell finished and every block has every method.\n")
+        doc.add(Text("No missing cells: every planned cell finished and every block has every method."))
     elif missing.empty:
-        parts.append("\nEvery block has every method. Without a manifest.json for every input the planned grid "
-                     "is unknown, so cells that never started cannot be listed.\n")
+        doc.add(Text("Every block has every method. Without a manifest.json for every input the planned grid "
+                     "is unknown, so cells that never started cannot be listed."))
     else:
-        parts.append(f"\n**Missing: {len(missing)} entries** (see `stats/missing.md` for all):\n\n")
-        parts.append(to_markdown(missing.head(40)))
+        doc.add(Text(f"**Missing: {len(missing)} entries** (see `stats/missing.md` for all):"), Table(missing.head(40)))
         if len(missing) > 40:
-            parts.append(f"\n… and {len(missing) - 40} more.\n")
+            doc.add(Text(f"… and {len(missing) - 40} more."))
     if sources:
-        parts.append("\nInputs: " + ", ".join(f"`{s}`" for s in sources) + "\n")
+        doc.add(Text("Inputs: " + ", ".join(f"`{s}`" for s in sources)))
 
-    parts.append("\n## Figures\n\n")
-    if not figures:
-        parts.append("_No figures._\n\n")
-    for fig in figures:
-        png = next(p for p in fig.paths if p.suffix == ".png")
-        rel = os.path.relpath(png, out_dir)
-        parts.append(f"### {fig.title}\n\n![{fig.title}]({rel})\n\n{fig.caption} "
-                     f"([SVG]({os.path.relpath(png.with_suffix('.svg'), out_dir)}))\n\n")
+    doc.add(Heading(2, "Figures"), Text(figure_count_text(len(figures))), *(Plot(f) for f in figures))
 
-    parts.append("## Tables\n\n")
+    doc.add(Heading(2, "Tables"))
     for domain in sorted(result.layouts):
         s = t["summary"][t["summary"]["domain"] == domain]
-        parts.append(f"### {domain}: per-group statistics of `{cfg.metric}` "
-                     f"({'higher' if result.layouts[domain].higher_is_better else 'lower'} is better)\n\n")
-        parts.append(to_markdown(_summary_compact(s)))
-    parts.append("\n### Rank tests over the paired range\n\n")
-    parts.append(to_markdown(t["tests"], ["domain", "condition", "paired_range", "treatments", "n_blocks",
-                                          "n_blocks_incomplete", "test", "statistic", "p_value", "kendall_w",
-                                          "mean_ranks", "note"]))
-    parts.append("\n### Pairwise post-hoc (Nemenyi; Wilcoxon signed-rank with Holm)\n\n")
-    parts.append(to_markdown(t["pairwise"], ["domain", "condition", "a", "b", "n_blocks", "median_a", "median_b",
-                                             "median_diff", "wins_a", "ties", "wins_b", "p_nemenyi", "p_wilcoxon",
-                                             "p_holm", "better", "significant", "views_agree"]))
-    parts.append("\nEvery table is also in `stats/<name>.parquet` and `stats/<name>.md` "
+        doc.add(Heading(3, f"{domain}: per-group statistics of `{cfg.metric}` "
+                           f"({'higher' if result.layouts[domain].higher_is_better else 'lower'} is better)"),
+                Table(_summary_compact(s)))
+    doc.add(Heading(3, "Rank tests over the paired range"),
+            Table(t["tests"], ["domain", "condition", "paired_range", "treatments", "n_blocks", "n_blocks_incomplete",
+                               "test", "statistic", "p_value", "kendall_w", "mean_ranks", "note"]),
+            Heading(3, "Pairwise post-hoc (Nemenyi; Wilcoxon signed-rank with Holm)"),
+            Table(t["pairwise"], ["domain", "condition", "a", "b", "n_blocks", "median_a", "median_b", "median_diff",
+                                  "wins_a", "ties", "wins_b", "p_nemenyi", "p_wilcoxon", "p_holm", "better",
+                                  "significant", "views_agree"]),
+            Text("Every table is also in `stats/<name>.parquet` and `stats/<name>.md` "
                  "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, missing; the rliable "
                  "view's normalisation, iqm, aggregate, improvement, improvement_by_paired, profiles, "
-                 "rliable_agreement).\n")
+                 "rliable_agreement)"
+                 + (f"; {', '.join(latex_tables)} also as booktabs LaTeX, `stats/<name>.tex`, ready to `\\input`"
+                    if latex_tables else "") + "."))
 
-    parts.append("\n## The tests\n\n" + METHODS_TEXT.format(alpha=cfg.alpha, n_boot=cfg.n_boot, ci=int(cfg.ci * 100),
-                                                            seed=cfg.seed,
-                                                            ranges=json.dumps({k: list(v) if v else "all" for k, v in
-                                                                               cfg.paired_ranges.items()})))
-    path = out_dir / "report.md"
-    tmp = out_dir / ".report.md.tmp"
-    tmp.write_text("".join(parts))
-    tmp.replace(path)
-    return path
+    doc.add(Heading(2, "The tests"), Text(METHODS_TEXT.format(
+        alpha=cfg.alpha, n_boot=cfg.n_boot, ci=int(cfg.ci * 100), seed=cfg.seed,
+        ranges=json.dumps({k: list(v) if v else "all" for k, v in cfg.paired_ranges.items()}))))
+    return doc
+
+
+def write_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Figure] = (),
+                 figure_notes: Sequence[str] = (), sources: Sequence[str] = (), command: str = "") -> Path:
+    """report.md of the stats job (build_report + render_markdown)."""
+    doc = build_report(result, out_dir, figures, figure_notes, sources, command)
+    return write_atomic(doc.out_dir / "report.md", render_markdown(doc))
 
 
 METHODS_TEXT = """\
