@@ -72,12 +72,15 @@ CELL_FLAGS = ("domain", "method", "paired", "trial")  # the fields `asp-dist cel
 
 
 def check_data(specs: Sequence[CellSpec]) -> None:
-    """Load (and verify) MNIST when a cell needs it, so a missing or corrupt copy is refused before any
-    work starts (asp_dist.data.mnist.MNISTError; `main` prints it as one line)."""
-    if any(s.domain == "vae" for s in specs):  # the one domain that reads a data set
-        from asp_dist.data.mnist import load_mnist
+    """Each domain of the cells loads and verifies the data its cells read (Domain.check_data), so a missing
+    or corrupt copy is refused before any work starts (e.g. MNISTError; `main` prints it as one line)."""
+    from asp_dist.domains import get_domain
 
-        load_mnist()
+    by_domain: dict[str, list[CellSpec]] = {}
+    for spec in specs:
+        by_domain.setdefault(spec.domain, []).append(spec)
+    for name, of_domain in sorted(by_domain.items()):
+        get_domain(name).check_data(of_domain)
 
 
 def cmd_cell(args: argparse.Namespace) -> int:
@@ -183,15 +186,51 @@ def parse_probs(text: str, actions: int) -> list[float]:
 
 def cmd_fields(args: argparse.Namespace) -> int:
     from asp_dist.domains import DOMAINS, get_domain
+    from asp_dist.domains.registry import set_aside
     from asp_dist.spec import COMMON_DEFAULTS
 
-    defaults = {**COMMON_DEFAULTS, **(get_domain(args.domain).defaults if args.domain is not None else {})}
-    domain_prefixes = tuple(f"{name}_" for name in DOMAINS)  # a domain's own knobs are named <domain>_*
+    for problem in set_aside().values():  # a broken plugin is named, and the other domains are listed
+        print(f"asp-dist: warning: {problem}", file=sys.stderr)
+    chosen = [get_domain(args.domain)] if args.domain is not None else [DOMAINS[name] for name in DOMAINS]
+    own = {k.name for domain in DOMAINS.values() for k in domain.knobs}
+    shown = {k.name for domain in chosen for k in domain.knobs}
+    defaults = {**COMMON_DEFAULTS, **(chosen[0].defaults if args.domain is not None else {}),
+                **{k: v for domain in chosen for k, v in domain.knob_defaults.items()}}
     for name in FIELD_NAMES:
-        if args.domain is not None and name.startswith(domain_prefixes) and not name.startswith(f"{args.domain}_"):
+        if name in own and name not in shown:  # another domain's knob
             continue
         value = defaults.get(name, getattr(CellSpec(), name))
         print(f"{name:26s} {str(value):>10s}  {FIELD_DOCS[name]}")
+    return 0
+
+
+def cmd_check_domain(args: argparse.Namespace) -> int:
+    """The contract checker as a command: what a plugin author runs before anything else."""
+    from asp_dist.domains import get_domain
+    from asp_dist.domains.contract import ContractError, check_domain
+    from asp_dist.training.cell import run_cell
+
+    domain = get_domain(args.name)  # a plugin that did not load: its one line
+    spec = CellSpec(domain=args.name, method="asp", paired=4, **{**domain.smoke, **parse_overrides(args.set)})
+    spec.resolved()  # a bad knob value: SpecError, one line
+    steps = [("contract (same seed -> same base, P, U, losses, outputs, metrics; shapes; gradients)",
+              lambda: check_domain(domain, spec))]
+    steps += [(f"one {method} cell", lambda method=method: run_cell(spec.replace(method=method, paired=2)))
+              for method in ("pc", "osp", "asp")]
+    for what, step in steps:
+        try:
+            step()
+        except ContractError as err:
+            print(f"asp-dist: error: domain {args.name!r} breaks the contract: {err}", file=sys.stderr)
+            return 1
+        except SpecError:
+            raise
+        except Exception as err:  # the plugin's own code failed: name where, in one line
+            print(f"asp-dist: error: domain {args.name!r}: {what} failed: {type(err).__name__}: {err}",
+                  file=sys.stderr)
+            return 1
+        print(f"ok  {what}")
+    print(f"domain {args.name}: passes the contract (smoke spec: {', '.join(f'{k}={v}' for k, v in domain.smoke.items()) or 'defaults'})")
     return 0
 
 
@@ -649,6 +688,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fields", help="list every cell field with its default and meaning")
     p.add_argument("--domain", help="show this domain's defaults and knobs only")
     p.set_defaults(func=cmd_fields)
+
+    p = sub.add_parser("check-domain", help="run the domain contract checker on a registered domain (a plugin's)",
+                       description="Check a domain as a plugin author would: same seed gives the same base, "
+                                   "paired and unpaired data, losses, outputs and metrics; shapes and gradients "
+                                   "are as the contract says; one tiny cell of each method runs. On the domain's "
+                                   "smoke spec (Domain.smoke), changed with --set.")
+    p.add_argument("name", help="domain name, as registered (asp-dist fields lists them)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="change a knob of the smoke spec")
+    p.set_defaults(func=cmd_check_domain)
 
     p = sub.add_parser("sweep", help="run a named grid of cells on Ray Tune",
                        description="Run (or continue) a sweep over a space from tune_spaces/ or a .toml path.")

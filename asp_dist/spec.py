@@ -4,8 +4,11 @@ A cell is one (domain, method, paired, trial) training run plus the domain's own
 Fields left as ``None`` take the domain's default when the spec is *resolved*; a resolved
 spec is what runs, what is hashed into ``cell_id`` and what is written to the result row.
 
-Domain-specific knobs carry their domain's name as a prefix (``vae_latent_dim``) so that
-one flat, pinned schema serves every domain: a particle row simply has ``vae_*`` = null.
+The common knobs are declared here. A domain's own knobs are declared by the domain
+(``Domain.knobs``, asp_dist.knobs.Knob) and become fields of CellSpec when the registered domains are
+first asked for: this module names no domain. They carry their domain's name as a prefix
+(``vae_latent_dim``) so that one flat, pinned schema serves every domain: a particle row simply has
+``vae_*`` = null.
 """
 
 from __future__ import annotations
@@ -13,24 +16,22 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any, get_type_hints
 
-from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.domains.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
+from asp_dist.knobs import UNSET
 
 __all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", "coerce_field", "field_type"]
 
 METHODS = ("pc", "osp", "asp")
 ADVERSARY_LOSSES = ("neg_bce", "non_saturating")
 LAMBDA_SCHEDULES = ("constant", "warmup", "anneal")
-CHOICES: dict[str, tuple[str, ...]] = {
+CHOICES: dict[str, tuple[str, ...]] = {  # and every domain knob's Knob.choices (added below)
     "adversary_loss": ADVERSARY_LOSSES,
     "lambda_unpaired_schedule": LAMBDA_SCHEDULES,
-    "vae_recon_loss": ("bce", "mse"),
-    "vae_adversary_input": ("mu", "z"),
-    "vae_paired_reduction": ("sum", "mean"),
 }
 
 
@@ -39,7 +40,9 @@ def knob(default: Any = None, doc: str = "") -> Any:
 
 
 @dataclass(frozen=True)
-class CellSpec:
+class _CommonKnobs:
+    """The knobs every cell has, and every method of CellSpec; CellSpec adds the domains' knobs (below)."""
+
     # --- identity of the cell -------------------------------------------------------------
     domain: str = knob("signaling", "Domain: particles | vae | levers | signaling.")
     method: str = knob("asp", "Method: pc (paired only) | osp (self-play + paired) | asp (osp + adversary).")
@@ -76,56 +79,14 @@ class CellSpec:
     eval_episodes: int | None = knob(None, "Evaluation size per mixed-team composition (episodes, images or games).")
     record_figure_data: bool = knob(False, "Store figure arrays (latent codes, communication vectors) in the row.")
 
-    # --- signaling game (the paper's policy-space analysis) ----------------------------------
-    signaling_states: int | None = knob(None, "S: number of states of the one-step signaling game.")
-    signaling_tokens: int | None = knob(None, "A: number of tokens (and listener actions).")
-    signaling_skew: float | None = knob(None, "Token-distribution skew: 0 = uniform, larger = more concentrated (p_k ∝ exp(-skew·k)).")
-
-    # --- particle world (speaker-listener, A2C) ---------------------------------------------
-    particles_message_dim: int | None = knob(None, "Dimension of the speaker's continuous message (paper: 128).")
-    particles_hidden: int | None = knob(None, "Hidden units of speaker, listener and critic MLPs.")
-    particles_episode_len: int | None = knob(None, "Steps per episode (paper: 40).")
-    particles_gamma: float | None = knob(None, "A2C discount factor.")
-    particles_entropy: float | None = knob(None, "A2C entropy bonus weight.")
-    particles_value_coef: float | None = knob(None, "A2C value-loss weight.")
-    particles_rollout_len: int | None = knob(None, "Environment steps per A2C update (n-step return length).")
-    particles_base_envs: int | None = knob(None, "Parallel environments used to train the base pair.")
-    particles_base_lr: float | None = knob(None, "Adam learning rate of the base pair.")
-    particles_accept_return: float | None = knob(None, "Base accepted at mean self-play return >= this (paper: 300).")
-    particles_replay_size: int = knob(0, "0: on-policy A2C on the current rollout. N > 0: the paper's replay buffer — "
-                                         "each update adds batch_size fresh transitions to a FIFO of the last N and "
-                                         "trains (and shows the discriminator) a uniform batch of it.")
-    particles_paired_listener: bool = knob(True, "Paired loss adds the listener's cross-entropy on the base's "
-                                                 "(message, action); false: speaker MSE only, as the paper states.")
-
-    # --- MNIST VAE -------------------------------------------------------------------------------
-    vae_latent_dim: int | None = knob(None, "Latent size d (paper: 32; grid 2..128).")
-    vae_hidden: int | None = knob(None, "Hidden units of encoder and decoder (paper: 512).")
-    vae_kl_weight: float | None = knob(None, "Weight of the KL term of the VAE loss.")
-    vae_base_lr: float | None = knob(None, "Adam learning rate of the base VAE.")
-    vae_base_batch: int | None = knob(None, "Batch size of base VAE training (paper: 128).")
-    vae_train_images: int | None = knob(None, "Use only the first N training images (0 = all 60k); for tests.")
-    vae_recon_loss: str = knob("bce", "Reconstruction term of the VAE loss: bce (Bernoulli, summed over pixels) | "
-                                      "mse (squared error summed over pixels).")
-    vae_adversary_input: str = knob("mu", "What the adversary compares: mu (mean encodings) | z (sampled codes).")
-    vae_paired_reduction: str = knob("sum", "Paired MSE summed over latent dims and pixels (sum) or averaged (mean).")
-
-    # --- CommNet levers --------------------------------------------------------------------------
-    levers_hidden: int | None = knob(None, "Hidden size of the CommNet f-blocks.")
-    levers_num_ids: int | None = knob(None, "Agent IDs are drawn from 0..num_ids-1 (paper: 10).")
-    levers_eps_start: float | None = knob(None, "ε-greedy exploration at the start of training.")
-    levers_eps_end: float | None = knob(None, "ε-greedy exploration at the end of the schedule.")
-    levers_eps_decay_frac: float | None = knob(None, "Fraction of training over which ε decays linearly.")
-    levers_replay_size: int | None = knob(None, "Replay buffer capacity (games).")
-    levers_base_lr: float | None = knob(None, "Adam learning rate of the base network.")
-    levers_accept_reward: float | None = knob(None, "Base accepted at mean reward >= this (paper: 0.95).")
-
     # ------------------------------------------------------------------------------------------
     def replace(self, **changes: Any) -> "CellSpec":
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Every field, except the unset knobs of domains other than the legacy four and this cell's own
+        (Domain.legacy_identity): a cell's dict, manifest entry and row do not change when a plugin is installed."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if not (v is None and k in _SPARSE_IDENTITY)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "CellSpec":
@@ -138,7 +99,7 @@ class CellSpec:
         """Fill every None knob with the domain's default and validate the result."""
         self.validate_identity()
         domain = get_domain(self.domain)
-        defaults = {**COMMON_DEFAULTS, **domain.defaults}
+        defaults = {**COMMON_DEFAULTS, **domain.defaults, **domain.knob_defaults}
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         spec = dataclasses.replace(self, **filled)
         if spec.method != "asp":
@@ -205,6 +166,12 @@ class CellSpec:
                 raise SpecError(f"{f.name} must be >= 0, got {value!r}")
 
     def validate_resolved(self) -> None:
+        own = {*_COMMON_NAMES, *(k.name for k in get_domain(self.domain).knobs)}
+        unset = [f.name for f in fields(self) if f.name in own and getattr(self, f.name) is None]
+        if unset:  # a domain (a plugin's, say) that gives no default for a knob its cells need
+            raise SpecError(f"{', '.join(unset)} {'has' if len(unset) == 1 else 'have'} no value for domain "
+                            f"{self.domain!r}: set {'it' if len(unset) == 1 else 'them'}, or give the domain a "
+                            f"default (Domain.defaults or Knob.default)")
         self.validate_types()  # again: domain defaults and the replacements of resolved() are values too
         self.refuse_negatives()
         for name in ("train_steps", "batch_size", "unpaired_size", "unpaired_batch", "eval_episodes",
@@ -250,7 +217,8 @@ class CellSpec:
     def identity_dict(self) -> dict[str, Any]:
         """The fields that identify what runs: every field, except knobs added after the first
         results were recorded while they hold the value that reproduces the earlier behaviour
-        (HASH_NEUTRAL). Adding a knob therefore changes no existing cell id, seed or base key."""
+        (HASH_NEUTRAL), and the unset knobs of domains other than the legacy four (Domain.legacy_identity).
+        Adding a knob or installing a domain therefore changes no existing cell id, seed or base key."""
         return {k: v for k, v in self.to_dict().items() if not (k in HASH_NEUTRAL and v == HASH_NEUTRAL[k])}
 
     @property
@@ -299,15 +267,11 @@ COMMON_DEFAULTS: dict[str, Any] = {
 
 # Knobs added after rows were first recorded, with the value that reproduces the behaviour
 # before them. At that value they are left out of cell ids, seeds and base keys (identity_dict).
+# (Here the common ones; a domain knob's is its Knob.neutral, added below.)
 HASH_NEUTRAL: dict[str, Any] = {
     "lambda_unpaired_schedule": "constant", "lambda_schedule_frac": 0.5, "disc_steps": 1,
-    "base_steps_growth": 1.0, "particles_replay_size": 0, "particles_paired_listener": True,
-    "vae_recon_loss": "bce", "vae_adversary_input": "mu", "vae_paired_reduction": "sum",
+    "base_steps_growth": 1.0,
 }
-
-# Domain knobs that shape only how the new agents train: cells differing in them share a base.
-NEW_AGENTS_ONLY = frozenset({"particles_replay_size", "particles_paired_listener", "vae_adversary_input",
-                             "vae_paired_reduction"})
 
 # Fields that change what a cell records, never what it trains or how it is evaluated.
 OUTPUT_ONLY_FIELDS = frozenset({"record_figure_data"})
@@ -327,6 +291,43 @@ UPPER_BOUNDS: dict[str, int] = {
 # Numbers in any one tensor of a cell, as Domain.tensor_sizes estimates them: 2^28 (1 GiB of float32) is
 # ~30x the largest tensor of a paper cell (the VAE's 10000 test images x 784 pixels) and fits a laptop.
 MAX_TENSOR = 2**28
+
+_COMMON_NAMES = tuple(f.name for f in fields(_CommonKnobs))
+
+
+def _domain_knobs() -> list[Any]:
+    """The knobs of every registered domain, by domain name; a domain whose knob collides with a common knob
+    or another domain's is set aside (registry.DOMAINS.refuse), the others keep working."""
+    common = {f.name for f in fields(_CommonKnobs)}
+    owner: dict[str, str] = {}
+    knobs = []
+    for name in list(DOMAINS):
+        domain = DOMAINS[name]
+        clash = next((k.name for k in domain.knobs if k.name in common or k.name in owner), None)
+        if clash is not None:
+            what = "a common CellSpec field" if clash in common else f"a knob of domain {owner[clash]!r}"
+            DOMAINS.refuse(name, f"its knob {clash!r} collides with {what}; rename it")
+            continue
+        owner.update((k.name, name) for k in domain.knobs)
+        knobs += domain.knobs
+    return knobs
+
+
+def _knob_field(k: Any) -> tuple[str, Any, Any]:
+    hint = k.type | None if k.optional else k.type
+    return k.name, hint, field(default=None if k.optional else k.default, metadata={"doc": k.doc})
+
+
+_KNOBS = _domain_knobs()
+CellSpec = make_dataclass("CellSpec", [_knob_field(k) for k in _KNOBS], bases=(_CommonKnobs,), frozen=True,
+                          namespace={"__module__": __name__, "__doc__": "Every knob of one training cell: the "
+                                     "common ones (_CommonKnobs) and each registered domain's (Domain.knobs)."})
+CHOICES.update({k.name: k.choices for k in _KNOBS if k.choices})
+HASH_NEUTRAL.update({k.name: k.neutral for k in _KNOBS if k.neutral is not UNSET})
+# Domain knobs that shape only how the new agents train: cells differing in them share a base.
+NEW_AGENTS_ONLY = frozenset(k.name for k in _KNOBS if not k.shapes_base)
+_SPARSE_IDENTITY = frozenset(k.name for name in DOMAINS if not DOMAINS[name].legacy_identity
+                             for k in DOMAINS[name].knobs)
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
 FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}

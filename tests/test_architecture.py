@@ -2,7 +2,7 @@
 
     cli → analysis → sweep → results → training → spec → domains → data → foundations
 
-(foundations: errors, hashing, nn, fsutil). A module may import from its own stage or any
+(foundations: errors, hashing, nn, fsutil, knobs). A module may import from its own stage or any
 stage below it, never from above, and no two modules import each other, directly or through
 others. Imports under `if TYPE_CHECKING:` are annotations only and are not counted."""
 
@@ -12,7 +12,7 @@ import grimp
 import pytest
 
 STAGES = ["cli", "analysis", "sweep", "results", "training", "spec", "domains", "data"]
-FOUNDATIONS = ["errors", "hashing", "nn", "fsutil"]
+FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs"]
 
 
 @pytest.fixture(scope="module")
@@ -56,3 +56,17 @@ def test_no_import_cycles(graph):
             if imported != module and graph.chain_exists(importer=imported, imported=module):
                 cycles.append(f"{module} <-> {imported}")
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+# The core knows domains only through the registry (entry points) and the contract: no core module imports a
+# domain's package, not even for annotations (a plugin must be able to stand where the built-ins stand).
+CORE = ("asp_dist.spec", "asp_dist.sweep", "asp_dist.results", "asp_dist.analysis", "asp_dist.cli")
+DOMAIN_CORE = ("asp_dist.domains", "asp_dist.domains.contract", "asp_dist.domains.registry")
+
+
+def test_the_core_imports_no_domain_package():
+    graph = grimp.build_graph("asp_dist", exclude_type_checking_imports=False)
+    bad = [f"{m} -> {i}" for m in sorted(graph.modules) if m.startswith(CORE)
+           for i in graph.find_modules_directly_imported_by(m)
+           if i.startswith("asp_dist.domains") and i not in DOMAIN_CORE]
+    assert not bad, "core modules import a domain:\n" + "\n".join(bad)

@@ -388,13 +388,18 @@ case("select-ghost", ["select", "ghost", *R, "--domain", "signaling"], "does not
 case("select-not-parquet", ["select", "{scratch}/existing.csv", "--domain", "signaling"], "is not a .parquet file")
 case("select-no-domain", ["select", "tiny", *R], "required: --domain")
 
+# check-domain
+case("check-domain-unknown", ["check-domain", "chess"], "unknown domain 'chess'")
+case("check-domain-bad-knob", ["check-domain", "signaling", "--set", "signaling_tokens=0"], "signaling_tokens")
+case("check-domain-unknown-knob", ["check-domain", "signaling", "--set", "nope=1"], "unknown cell field 'nope'")
+
 
 def test_there_are_at_least_a_hundred_cases_over_every_subcommand():
     assert len(CASES) >= 100
     assert len({c[0] for c in CASES}) == len(CASES), "case ids must be unique"
     commands = {argv[0] for _, argv, _, _ in CASES}
     assert commands == {"cell", "theory", "fields", "sweep", "resume", "status", "stats", "query", "select",
-                        "compare"}
+                        "compare", "check-domain"}
 
 
 @pytest.mark.parametrize("argv, needle, env", [c[1:] for c in CASES], ids=[c[0] for c in CASES])

@@ -24,6 +24,7 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any, Callable
 
 from asp_dist.errors import SpecError
+from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:  # a spec is resolved against the domains, so spec.py imports this package
     import torch
@@ -66,8 +67,19 @@ class SelfPlayOut:
 
 class Domain(ABC):
     name: str = ""
-    # Defaults for every CellSpec knob this domain uses (None fields of a spec are filled from here).
+    # This domain's own knobs (asp_dist.knobs.Knob: name, type, default, doc, choices, bound, ...), named
+    # <name>_<knob>; each becomes a field of CellSpec and a column of the result row.
+    knobs: tuple[Knob, ...] = ()
+    # This domain's values of the common CellSpec knobs (train_steps, lr, λ0, λ1, ...): None fields of a
+    # spec are filled from here (and its own knobs from their Knob.default).
     defaults: dict[str, Any] = {}
+    # True for the domains whose knobs were CellSpec fields before domains were plugins: their knobs, even
+    # unset, stay in every cell's identity, so that no recorded cell id moves. A new domain leaves it False:
+    # its knobs then enter the identity of its own cells only, and installing it moves no other cell.
+    legacy_identity: bool = False
+    # Knob values that make a cell of this domain run in about a second: what `asp-dist check-domain` and the
+    # registry-wide tests (tests/test_domain_registry.py) run it with.
+    smoke: dict[str, Any] = {}
     # Convention channels watched by one adversary each (name -> output dimension given a spec).
     channels: tuple[str, ...] = ()
     # Metrics returned by evaluate(); must include "mixed", "self_play_new" and "self_play_base".
@@ -84,8 +96,16 @@ class Domain(ABC):
     # when a domain has many small parameter tensors and tiny batches.
     optimizer_options: dict[str, Any] = {}
 
-    # Upper bounds of this domain's size-like knobs, checked by CellSpec with its common ones (spec.UPPER_BOUNDS).
-    upper_bounds: dict[str, int] = {}
+    @property
+    def knob_defaults(self) -> dict[str, Any]:
+        """The defaults of this domain's optional knobs (what resolution fills a None knob with)."""
+        return {k.name: k.default for k in self.knobs if k.optional}
+
+    @property
+    def upper_bounds(self) -> dict[str, int]:
+        """Upper bounds of this domain's size-like knobs, checked by CellSpec with its common ones
+        (spec.UPPER_BOUNDS)."""
+        return {k.name: k.bound for k in self.knobs if k.bound is not None}
 
     @property
     def game(self) -> ModuleType:
@@ -98,6 +118,10 @@ class Domain(ABC):
 
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""
+
+    def check_data(self, specs: list[CellSpec]) -> None:
+        """Before any cell of `specs` (all of this domain) runs: load and verify the data set they read, so
+        that a missing or corrupt copy is refused in one line before work starts. Domains without data: no-op."""
 
     def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
         """Numbers in the largest tensors a cell of `spec` allocates, by the knobs that set them (an estimate,
@@ -197,19 +221,20 @@ class GameDomain(Domain):
 def check_domain(domain: Domain, spec: CellSpec) -> None:
     """Contract checker (PettingZoo-style): same seed -> identical base, P, U, rollouts and scores.
 
-    Raises AssertionError naming the piece that broke the contract."""
+    Raises ContractError (an AssertionError) naming the piece that broke the contract; not `assert`, so that
+    it checks under ``python -O`` too. `asp-dist check-domain NAME` runs it on the domain's smoke spec."""
     import torch
 
     spec = spec.resolved()
-    assert spec.domain == domain.name, "spec is for another domain"
+    _holds(spec.domain == domain.name, "spec is for another domain")
     for metric in ("mixed", "self_play_new", "self_play_base"):
-        assert metric in domain.metrics, f"{domain.name}: metrics must declare {metric!r}"
-    for knob in domain.defaults:
-        assert hasattr(spec, knob), f"{domain.name}: default for unknown field {knob!r}"
+        _holds(metric in domain.metrics, f"{domain.name}: metrics must declare {metric!r}")
+    for knob in (*domain.defaults, *domain.knob_defaults):
+        _holds(hasattr(spec, knob), f"{domain.name}: default for unknown field {knob!r}")
 
     base_a, score_a = domain.train_base(spec, seed=123)
     base_b, score_b = domain.train_base(spec, seed=123)
-    assert score_a == score_b, "train_base: same seed gave different scores"
+    _holds(score_a == score_b, "train_base: same seed gave different scores")
     assert_same_params(base_a, base_b, "train_base")
 
     def gen(seed: int) -> torch.Generator:
@@ -220,13 +245,13 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
     assert_same_tensors(p1, p2, "paired")
     prefix = domain.paired(spec, base_a, n - 1, gen(1))
     for k in p1:
-        assert torch.equal(prefix[k], p1[k][: n - 1]), f"paired: set for n-1 is not a prefix of the set for n ({k})"
+        _holds(torch.equal(prefix[k], p1[k][: n - 1]), f"paired: set for n-1 is not a prefix of the set for n ({k})")
     u1, u2 = domain.unpaired(spec, base_a, 16, gen(2)), domain.unpaired(spec, base_a, 16, gen(2))
     assert_same_tensors(u1, u2, "unpaired")
     dims = domain.channel_dims(spec)
-    assert set(u1) == set(domain.channels) == set(dims), "unpaired: one entry per convention channel"
+    _holds(set(u1) == set(domain.channels) == set(dims), "unpaired: one entry per convention channel")
     for ch, t in u1.items():
-        assert t.shape == (16, dims[ch]), f"unpaired[{ch}] has shape {tuple(t.shape)}, expected (16, {dims[ch]})"
+        _holds(t.shape == (16, dims[ch]), f"unpaired[{ch}] has shape {tuple(t.shape)}, expected (16, {dims[ch]})")
 
     agents_a, agents_b = domain.new_agents(spec, 7), domain.new_agents(spec, 7)
     assert_same_params(agents_a, agents_b, "new_agents")
@@ -237,35 +262,44 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
         step = [domain.self_play_step(spec, agents, state, g) for _ in range(2)][-1]
         conv = domain.convention_outputs(spec, agents, 5, g)
         outs.append((step, conv))
-    assert torch.equal(outs[0][0].loss, outs[1][0].loss), "self_play_step: same seed gave different losses"
+    _holds(torch.equal(outs[0][0].loss, outs[1][0].loss), "self_play_step: same seed gave different losses")
     assert_same_tensors(outs[0][0].outputs, outs[1][0].outputs, "self_play_step outputs")
     assert_same_tensors(outs[0][1], outs[1][1], "convention_outputs")
     for ch, t in outs[0][1].items():
-        assert t.shape == (5, dims[ch]), f"convention_outputs[{ch}] has shape {tuple(t.shape)}"
-        assert t.requires_grad, f"convention_outputs[{ch}] must carry gradients to the agents"
-    assert domain.paired_loss(spec, agents_a, p1).requires_grad, "paired_loss must carry gradients"
+        _holds(t.shape == (5, dims[ch]), f"convention_outputs[{ch}] has shape {tuple(t.shape)}")
+        _holds(t.requires_grad, f"convention_outputs[{ch}] must carry gradients to the agents")
+    _holds(domain.paired_loss(spec, agents_a, p1).requires_grad, "paired_loss must carry gradients")
 
     m1 = domain.evaluate(spec, base_a, agents_a, gen(4))
     m2 = domain.evaluate(spec, base_a, agents_a, gen(4))
-    assert m1 == m2, "evaluate: same seed gave different metrics"
-    assert set(m1) == set(domain.metrics), f"evaluate returned {sorted(m1)}, declared {sorted(domain.metrics)}"
+    _holds(m1 == m2, "evaluate: same seed gave different metrics")
+    _holds(set(m1) == set(domain.metrics), f"evaluate returned {sorted(m1)}, declared {sorted(domain.metrics)}")
 
 
 def assert_same_params(a: nn.Module, b: nn.Module, what: str) -> None:
     import torch
 
     sa, sb = a.state_dict(), b.state_dict()
-    assert sa.keys() == sb.keys(), f"{what}: different parameter names"
+    _holds(sa.keys() == sb.keys(), f"{what}: different parameter names")
     for k in sa:
-        assert torch.equal(sa[k], sb[k]), f"{what}: parameter {k} differs between two runs of one seed"
+        _holds(torch.equal(sa[k], sb[k]), f"{what}: parameter {k} differs between two runs of one seed")
 
 
 def assert_same_tensors(a: Tensors, b: Tensors, what: str) -> None:
     import torch
 
-    assert a.keys() == b.keys(), f"{what}: different keys"
+    _holds(a.keys() == b.keys(), f"{what}: different keys")
     for k in a:
-        assert torch.equal(a[k], b[k]), f"{what}: {k} differs between two runs of one seed"
+        _holds(torch.equal(a[k], b[k]), f"{what}: {k} differs between two runs of one seed")
+
+
+class ContractError(AssertionError):
+    """A domain breaks the contract (check_domain)."""
+
+
+def _holds(condition: bool, message: str) -> None:
+    if not condition:
+        raise ContractError(message)
 
 
 def require(condition: bool, message: str) -> None:

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from asp_dist import __version__
+from asp_dist.domains import DOMAINS
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
@@ -365,11 +366,23 @@ def lock_holder(sweep_dir: AnyPath) -> str | None:
 
 # ---- grid (manifest) -----------------------------------------------------------------------------
 def new_manifest(name: str, space: str, specs: list[CellSpec], packing: Packing | None = None) -> dict[str, Any]:
-    """The manifest of a new sweep: its grid as cell ids and resolved specs, the grid's hash, and how its
-    cells are grouped into Tune trials (asp_dist.sweep.packing; fixed for the sweep's life)."""
+    """The manifest of a new sweep: its grid as cell ids and resolved specs, the grid's hash, how its
+    cells are grouped into Tune trials (asp_dist.sweep.packing; fixed for the sweep's life), and which
+    plugin (entry point, distribution, version) provides each of its domains."""
     return {"name": name, "space": space, "grid_hash": grid_hash(specs), "cells": [s.cell_id for s in specs],
             "specs": [s.to_dict() for s in specs], MANIFEST_KEY: (packing or Packing()).to_dict(),
+            "domains": domain_plugins(sorted({s.domain for s in specs})),
             "asp_dist_version": __version__, "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def domain_plugins(names: list[str]) -> dict[str, dict[str, str]]:
+    """domain -> {entry_point, distribution, version} of the plugin that provides it (registry.DOMAINS)."""
+    out = {}
+    for name in names:
+        plugin = DOMAINS.plugins.get(name)
+        if plugin is not None:
+            out[name] = {"entry_point": plugin.value, "distribution": plugin.distribution, "version": plugin.version}
+    return out
 
 
 def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,

@@ -73,22 +73,41 @@ def _outcome_columns() -> list[tuple[str, pa.DataType]]:
     return cols
 
 
-def metric_names() -> list[str]:
-    """The union of every registered domain's metrics (an ``eval_<name>`` column each)."""
-    return sorted({m for domain in DOMAINS.values() for m in domain.metrics})
+def _included(domain: str | None) -> list[Any]:
+    """The domains whose knobs and metrics a row has: every registered one (domain None: what readers read
+    with), or the legacy four (Domain.legacy_identity: every row had their columns before domains were
+    plugins) and the row's own. So installing a plugin changes the shape of no built-in domain's row."""
+    if domain is None or domain not in DOMAINS:
+        return list(DOMAINS.values())
+    return [d for d in DOMAINS.values() if d.legacy_identity or d.name == domain]
 
 
-@lru_cache(maxsize=1)
-def schema() -> pa.Schema:
-    """The pinned schema of a result row."""
+def metric_names(domain: str | None = None) -> list[str]:
+    """The metrics of the domains a row has (an ``eval_<name>`` column each): see _included."""
+    return sorted({m for d in _included(domain) for m in d.metrics})
+
+
+@lru_cache(maxsize=None)
+def schema(domain: str | None = None) -> pa.Schema:
+    """The pinned schema of a result row of `domain` (None: the union over every registered domain)."""
+    included = _included(domain)
+    knobs = {k.name for d in included for k in d.knobs}
+    other = {k.name for d in DOMAINS.values() for k in d.knobs} - knobs
     fields: list[pa.Field] = []
     for name in FIELD_NAMES:
+        if name in other:
+            continue
         t = pa.dictionary(pa.int32(), pa.string()) if name in PARTITION_COLUMNS else _ARROW_TYPES[field_type(name)]
         fields.append(pa.field(name, t))
     fields += [pa.field(n, t) for n, t in _identity_columns()]
-    fields += [pa.field(f"eval_{m}", pa.float64()) for m in metric_names()]
+    fields += [pa.field(f"eval_{m}", pa.float64()) for m in metric_names(domain)]
     fields += [pa.field(n, t) for n, t in _outcome_columns()]
     fields += [pa.field(n, t) for n, t in SWEEP_COLUMNS]
+    names = [f.name for f in fields]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # a plugin's knob or metric named like a column of the row (e.g. a domain "base" with base_key)
+        raise SchemaError(f"the row schema has column(s) {', '.join(twice)} twice: a domain's knob or metric "
+                          f"(domains {', '.join(d.name for d in included)}) is named like a column of the row")
     return pa.schema(fields)
 
 
@@ -97,20 +116,20 @@ CURVE_DIAGNOSTICS = ("lambda_unpaired_now", *(f"loss_{k}" for k in LOSS_TERMS), 
                      "d_fake")
 
 
-@lru_cache(maxsize=1)
-def curve_schema() -> pa.Schema:
+@lru_cache(maxsize=None)
+def curve_schema(domain: str | None = None) -> pa.Schema:
     """The pinned schema of a learning curve: one row per point of one cell (asp_dist.training.trainer)."""
     fields = [pa.field(n, pa.dictionary(pa.int32(), pa.string()) if n in PARTITION_COLUMNS else
                        (pa.int64() if n in ("paired", "trial") else pa.string())) for n in CURVE_KEYS]
     fields.append(pa.field("step", pa.int64()))
     fields += [pa.field(n, pa.float64()) for n in CURVE_DIAGNOSTICS]
-    fields += [pa.field(f"probe_{m}", pa.float64()) for m in metric_names()]
+    fields += [pa.field(f"probe_{m}", pa.float64()) for m in metric_names(domain)]
     return pa.schema(fields)
 
 
 def curve_table(row: dict[str, Any], curve: list[dict[str, float]]) -> pa.Table:
     """A cell's curve points as a table with the pinned curve schema (keys repeated from its row)."""
-    sch = curve_schema()
+    sch = curve_schema(row.get("domain"))
     unknown = sorted({k for point in curve for k in point} - set(sch.names))
     if unknown:
         raise SchemaError(f"curve has column(s) not in the pinned schema: {', '.join(unknown)}; "
@@ -130,9 +149,11 @@ def curve_table(row: dict[str, Any], curve: list[dict[str, float]]) -> pa.Table:
 
 
 def row_table(row: dict[str, Any]) -> pa.Table:
-    """One row as a table with the pinned schema; missing columns are null, unknown ones an error."""
-    sch = schema()
-    unknown = sorted(set(row) - set(sch.names))
+    """One row as a table with its domain's pinned schema; missing columns are null, unknown ones an error
+    (another domain's knob is dropped while unset: CellSpec.to_dict lists every registered domain's)."""
+    sch = schema(row.get("domain"))
+    every = set(schema().names)
+    unknown = sorted(k for k, v in row.items() if k not in sch.names and (k not in every or v is not None))
     if unknown:
         raise SchemaError(f"row has column(s) not in the pinned schema: {', '.join(unknown)}; "
                           f"add them to asp_dist/training/row.py")

@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -48,10 +49,21 @@ class LeversDomain(GameDomain):
         test_paired=(4, 8),
         threshold=(1 - 0.683, "error of the best policy without communication (1 - 0.683)"),
     )
+    knobs = (  # name, type, default, doc; choices, neutral value, base-shaping, bound
+        Knob('levers_hidden', int, 32, 'Hidden size of the CommNet f-blocks.', bound=16_384),
+        Knob('levers_num_ids', int, 10, 'Agent IDs are drawn from 0..num_ids-1 (paper: 10).', bound=100),
+        Knob('levers_eps_start', float, 1.0, 'ε-greedy exploration at the start of training.'),
+        Knob('levers_eps_end', float, 0.05, 'ε-greedy exploration at the end of the schedule.'),
+        Knob('levers_eps_decay_frac', float, 0.5, 'Fraction of training over which ε decays linearly.'),
+        Knob('levers_replay_size', int, 4096, 'Replay buffer capacity (games).', bound=10_000_000),
+        Knob('levers_base_lr', float, 0.003, 'Adam learning rate of the base network.'),
+        Knob('levers_accept_reward', float, 0.95, 'Base accepted at mean reward >= this (paper: 0.95).'),
+    )
+    legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    # A cell in about a second (asp-dist check-domain, the registry-wide tests)
+    smoke = dict(levers_hidden=8, base_train_steps=30, train_steps=20, batch_size=16, levers_replay_size=64,
+                 unpaired_size=60, disc_hidden=8, eval_episodes=120, levers_accept_reward=0.0)
     defaults = dict(
-        levers_hidden=32, levers_num_ids=10,
-        levers_eps_start=1.0, levers_eps_end=0.05, levers_eps_decay_frac=0.5,
-        levers_replay_size=4096, levers_base_lr=3e-3, levers_accept_reward=0.95,
         lambda_paired=1.0, lambda_unpaired=0.1, unpaired_size=4096,
         train_steps=1000, batch_size=128, lr=3e-3,
         disc_hidden=32, disc_layers=1, disc_lr=1e-3,
@@ -76,9 +88,6 @@ class LeversDomain(GameDomain):
             require(0.0 <= getattr(spec, name) <= 1.0, f"{name} must be in [0, 1], got {getattr(spec, name)}")
         require(spec.levers_base_lr > 0, "levers_base_lr must be > 0")
 
-    # [the paper's values in brackets] evaluation lists every game, num_ids³ of them (970200 at 100), in Python;
-    # the CommNet's weights are hidden × 2·hidden; the replay buffer holds 7 numbers per game.
-    upper_bounds = {"levers_num_ids": 100, "levers_hidden": 16_384, "levers_replay_size": 10_000_000}  # [10, 32, 4096]
 
     def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
         h, ids = spec.levers_hidden, spec.levers_num_ids

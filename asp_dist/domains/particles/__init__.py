@@ -31,6 +31,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -48,11 +49,32 @@ class ParticlesDomain(GameDomain):
         test_paired=(2, 4),
     )
     optimizer_options = {"fused": True}  # 12 small tensors: fused Adam is ~3-4x faster per step on CPU
+    knobs = (  # name, type, default, doc; choices, neutral value, base-shaping, bound
+        Knob('particles_message_dim', int, 128, "Dimension of the speaker's continuous message (paper: 128).",
+             bound=16_384),
+        Knob('particles_hidden', int, 64, 'Hidden units of speaker, listener and critic MLPs.', bound=16_384),
+        Knob('particles_episode_len', int, 40, 'Steps per episode (paper: 40).', bound=100_000),
+        Knob('particles_gamma', float, 0.95, 'A2C discount factor.'),
+        Knob('particles_entropy', float, 0.01, 'A2C entropy bonus weight.'),
+        Knob('particles_value_coef', float, 0.5, 'A2C value-loss weight.'),
+        Knob('particles_rollout_len', int, 1, 'Environment steps per A2C update (n-step return length).',
+             bound=10_000),
+        Knob('particles_base_envs', int, 256, 'Parallel environments used to train the base pair.', bound=1_000_000),
+        Knob('particles_base_lr', float, 0.003, 'Adam learning rate of the base pair.'),
+        Knob('particles_accept_return', float, 300.0, 'Base accepted at mean self-play return >= this (paper: 300).'),
+        Knob('particles_replay_size', int, 0,
+             "0: on-policy A2C on the current rollout. N > 0: the paper's replay buffer — each update adds "
+             'batch_size fresh transitions to a FIFO of the last N and trains (and shows the discriminator) a '
+             'uniform batch of it.', neutral=0, shapes_base=False, bound=10_000_000, optional=False),
+        Knob('particles_paired_listener', bool, True,
+             "Paired loss adds the listener's cross-entropy on the base's (message, action); false: speaker MSE "
+             'only, as the paper states.', neutral=True, shapes_base=False, optional=False),
+    )
+    legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    # A cell in about a second (asp-dist check-domain, the registry-wide tests)
+    smoke = dict(train_steps=40, base_train_steps=30, particles_base_envs=32, eval_episodes=64, unpaired_size=256,
+                 particles_hidden=16, particles_message_dim=16, particles_accept_return=0.0)
     defaults = dict(
-        particles_message_dim=128, particles_hidden=64, particles_episode_len=40,
-        particles_gamma=0.95, particles_entropy=0.01, particles_value_coef=0.5,
-        particles_rollout_len=1, particles_base_envs=256, particles_base_lr=3e-3,
-        particles_accept_return=300.0,
         lambda_paired=1.0, lambda_unpaired=0.1, unpaired_size=4096,
         train_steps=25000, batch_size=8, lr=1e-3,
         disc_hidden=64, disc_layers=1, disc_lr=1e-3,
@@ -83,11 +105,6 @@ class ParticlesDomain(GameDomain):
         require(spec.particles_base_lr > 0, f"particles_base_lr must be > 0, got {spec.particles_base_lr}")
         require(spec.paired <= POOL, f"paired must be <= {POOL} for particles, got {spec.paired}")
 
-    # [the paper's values in brackets] widths of weight matrices; envs and time steps of a rollout, whose
-    # tensors are all kept for the backward pass; the replay buffer holds ~10 numbers per transition.
-    upper_bounds = {"particles_message_dim": 16_384, "particles_hidden": 16_384,  # [128, 64]
-                    "particles_episode_len": 100_000, "particles_rollout_len": 10_000,  # [40, 1]
-                    "particles_base_envs": 1_000_000, "particles_replay_size": 10_000_000}  # [256, 10000]
 
     def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
         width = max(spec.particles_message_dim, spec.particles_hidden)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -31,8 +32,16 @@ class SignalingDomain(GameDomain):
         claim="(policy-space analysis) ASP prunes more conventions, so helps more, the more skewed the tokens",
         knob_labels={"signaling_skew": "token skew (0 = uniform)"},
     )
+    knobs = (  # name, type, default, doc; choices, neutral value, base-shaping, bound
+        Knob('signaling_states', int, 32, 'S: number of states of the one-step signaling game.', bound=1_000_000),
+        Knob('signaling_tokens', int, 4, 'A: number of tokens (and listener actions).', bound=10_000),
+        Knob('signaling_skew', float, 1.0,
+             'Token-distribution skew: 0 = uniform, larger = more concentrated (p_k ∝ exp(-skew·k)).'),
+    )
+    legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    # A cell in about a second (asp-dist check-domain, the registry-wide tests)
+    smoke = dict(train_steps=60, batch_size=16, unpaired_size=128)
     defaults = dict(
-        signaling_states=32, signaling_tokens=4, signaling_skew=1.0,
         lambda_paired=1.0, lambda_unpaired=1.0, unpaired_size=1024,
         train_steps=300, batch_size=256, lr=0.05,
         disc_hidden=32, disc_layers=1, disc_lr=0.01,
@@ -47,8 +56,6 @@ class SignalingDomain(GameDomain):
         "convention_match": MetricInfo(True, "fraction of states where the new speaker sends the base's token"),
     }
 
-    # [paper-scale values in brackets] the speaker is an S × A table, the listener A × A.
-    upper_bounds = {"signaling_states": 1_000_000, "signaling_tokens": 10_000}  # [32, 4]
 
     def validate(self, spec: CellSpec) -> None:
         require(spec.signaling_tokens >= 2, "signaling_tokens must be >= 2")

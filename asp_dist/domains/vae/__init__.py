@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 from asp_dist.data.mnist import PIXELS
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -44,9 +45,28 @@ class VAEDomain(GameDomain):
         threshold=(0.06, "paper: MSE 0.06 ~ right digit"),
         knob_labels={"vae_latent_dim": "latent size d (dimensions)"},
     )
+    knobs = (  # name, type, default, doc; choices, neutral value, base-shaping, bound
+        Knob('vae_latent_dim', int, 32, 'Latent size d (paper: 32; grid 2..128).', bound=16_384),
+        Knob('vae_hidden', int, 512, 'Hidden units of encoder and decoder (paper: 512).', bound=16_384),
+        Knob('vae_kl_weight', float, 1.0, 'Weight of the KL term of the VAE loss.'),
+        Knob('vae_base_lr', float, 0.001, 'Adam learning rate of the base VAE.'),
+        Knob('vae_base_batch', int, 128, 'Batch size of base VAE training (paper: 128).', bound=1_000_000),
+        Knob('vae_train_images', int, 0, 'Use only the first N training images (0 = all 60k); for tests.'),
+        Knob('vae_recon_loss', str, 'bce',
+             'Reconstruction term of the VAE loss: bce (Bernoulli, summed over pixels) | mse (squared error summed '
+             'over pixels).', choices=('bce', 'mse'), neutral='bce', optional=False),
+        Knob('vae_adversary_input', str, 'mu',
+             'What the adversary compares: mu (mean encodings) | z (sampled codes).', choices=('mu', 'z'),
+             neutral='mu', shapes_base=False, optional=False),
+        Knob('vae_paired_reduction', str, 'sum',
+             'Paired MSE summed over latent dims and pixels (sum) or averaged (mean).', choices=('sum', 'mean'),
+             neutral='sum', shapes_base=False, optional=False),
+    )
+    legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    # A cell in about a second (asp-dist check-domain, the registry-wide tests)
+    smoke = dict(vae_train_images=300, vae_hidden=64, vae_latent_dim=4, base_train_steps=40, vae_base_batch=32,
+                 train_steps=20, batch_size=32, unpaired_size=64, eval_episodes=200, disc_hidden=16)
     defaults = dict(
-        vae_latent_dim=32, vae_hidden=512, vae_kl_weight=1.0, vae_base_lr=1e-3, vae_base_batch=128,
-        vae_train_images=0,
         base_train_steps=5000,
         train_steps=1000, batch_size=64, lr=1e-3,
         # λ1 = 10: at 1 the discriminator wins outright and the saturating -BCE gives the model ~1 % of
@@ -77,8 +97,11 @@ class VAEDomain(GameDomain):
         require(spec.vae_train_images <= 60_000, f"vae_train_images must be 0 (all) or at most 60000, got {spec.vae_train_images}")
         require(spec.eval_episodes <= 10_000, f"eval_episodes (test images) must be at most 10000, got {spec.eval_episodes}")
 
-    # [the paper's values in brackets] widths of the weight matrices; images of a base batch (784 pixels each)
-    upper_bounds = {"vae_latent_dim": 16_384, "vae_hidden": 16_384, "vae_base_batch": 1_000_000}  # [128, 512, 128]
+
+    def check_data(self, specs: list[CellSpec]) -> None:
+        from asp_dist.data.mnist import load_mnist
+
+        load_mnist()  # verifies the copy (MNISTError names what is wrong)
 
     def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
         width = max(PIXELS, spec.vae_hidden, 2 * spec.vae_latent_dim)  # an image, a hidden layer or (μ, log σ²)
