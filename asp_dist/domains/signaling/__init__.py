@@ -56,7 +56,6 @@ class SignalingDomain(GameDomain):
         "convention_match": MetricInfo(True, "fraction of states where the new speaker sends the base's token"),
     }
 
-
     def validate(self, spec: CellSpec) -> None:
         require(spec.signaling_tokens >= 2, "signaling_tokens must be >= 2")
         require(spec.signaling_states >= spec.signaling_tokens,
