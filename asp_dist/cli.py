@@ -189,7 +189,9 @@ def cmd_fields(args: argparse.Namespace) -> int:
     from asp_dist.domains.registry import set_aside
     from asp_dist.spec import COMMON_DEFAULTS
 
-    for problem in set_aside().values():  # a broken plugin is named, and the other domains are listed
+    from asp_dist.method_registry import METHODS
+
+    for problem in [*set_aside().values(), *METHODS.problems().values()]:  # named; the others are listed
         print(f"asp-dist: warning: {problem}", file=sys.stderr)
     chosen = [get_domain(args.domain)] if args.domain is not None else [DOMAINS[name] for name in DOMAINS]
     own = {k.name for domain in DOMAINS.values() for k in domain.knobs}
@@ -208,6 +210,7 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
     """The contract checker as a command: what a plugin author runs before anything else."""
     from asp_dist.domains import get_domain
     from asp_dist.domains.contract import ContractError, check_domain
+    from asp_dist.method_registry import method_order
     from asp_dist.training.cell import run_cell
 
     domain = get_domain(args.name)  # a plugin that did not load: its one line
@@ -216,7 +219,7 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
     steps = [("contract (same seed -> same base, P, U, losses, outputs, metrics; shapes; gradients)",
               lambda: check_domain(domain, spec))]
     steps += [(f"one {method} cell", lambda method=method: run_cell(spec.replace(method=method, paired=2)))
-              for method in ("pc", "osp", "asp")]
+              for method in method_order()]
     for what, step in steps:
         try:
             step()

@@ -23,10 +23,10 @@ from asp_dist.domains.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import UNSET
+from asp_dist.method_registry import METHODS, get_method
 
 __all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", "coerce_field", "field_type"]
 
-METHODS = ("pc", "osp", "asp")
 ADVERSARY_LOSSES = ("neg_bce", "non_saturating")
 LAMBDA_SCHEDULES = ("constant", "warmup", "anneal")
 CHOICES: dict[str, tuple[str, ...]] = {  # and every domain knob's Knob.choices (added below)
@@ -45,7 +45,8 @@ class _CommonKnobs:
 
     # --- identity of the cell -------------------------------------------------------------
     domain: str = knob("signaling", "Domain: particles | vae | levers | signaling.")
-    method: str = knob("asp", "Method: pc (paired only) | osp (self-play + paired) | asp (osp + adversary).")
+    method: str = knob("asp", "Method, as registered: pc (paired only) | osp (self-play + paired) | asp (osp + "
+                              "adversary) | a plugin's (asp_dist.method_registry).")
     paired: int = knob(0, "Number of paired (input, output) examples of the base convention, |P|.")
     trial: int = knob(0, "Trial index: selects the base model and all seeds of the cell.")
     root_seed: int = knob(0, "Global seed; every seed of the cell is derived from (root_seed, trial, ...).")
@@ -102,7 +103,7 @@ class _CommonKnobs:
         defaults = {**COMMON_DEFAULTS, **domain.defaults, **domain.knob_defaults}
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         spec = dataclasses.replace(self, **filled)
-        if spec.method != "asp":
+        if not get_method(spec.method).adversarial:
             # λ1 and its schedule have no meaning without an adversary; keep them in the row at their
             # neutral values (0, constant) so that PC and OSP rows stay comparable across settings.
             spec = dataclasses.replace(spec, lambda_unpaired_schedule="constant",
@@ -144,6 +145,8 @@ class _CommonKnobs:
         if self.domain not in DOMAINS:
             raise SpecError(f"unknown domain {_short_repr(self.domain)}; choose one of {', '.join(sorted(DOMAINS))}")
         if self.method not in METHODS:
+            if self.method in METHODS.problems():
+                get_method(self.method)  # the set-aside plugin's one line
             raise SpecError(f"unknown method {_short_repr(self.method)}; choose one of {', '.join(METHODS)}")
         for name, allowed in CHOICES.items():
             if getattr(self, name) is not None and getattr(self, name) not in allowed:

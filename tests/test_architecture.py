@@ -2,7 +2,7 @@
 
     cli → analysis → sweep → results → training → spec → domains → data → foundations
 
-(foundations: errors, hashing, nn, fsutil, knobs). A module may import from its own stage or any
+(foundations: errors, hashing, nn, fsutil, knobs, plugins, method_registry). A module may import from its own stage or any
 stage below it, never from above, and no two modules import each other, directly or through
 others. Imports under `if TYPE_CHECKING:` are annotations only and are not counted."""
 
@@ -12,7 +12,7 @@ import grimp
 import pytest
 
 STAGES = ["cli", "analysis", "sweep", "results", "training", "spec", "domains", "data"]
-FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs"]
+FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry"]
 
 
 @pytest.fixture(scope="module")

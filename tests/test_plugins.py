@@ -133,3 +133,37 @@ def test_a_broken_plugin_is_named_in_one_line_and_the_other_domains_work(site, c
     assert asked.returncode == 2 and asked.stdout == ""
     lines = asked.stderr.strip().splitlines()
     assert lines[-1].startswith("asp-dist: error: ") and expected in lines[-1], asked.stderr
+
+
+METHOD = '''
+from asp_dist.method_registry import Method
+
+SP = Method("sp", "self-play only: the convention the pair invents, no base data", self_play=True, paired=False)
+NOT_A_METHOD = object()
+'''
+
+RUN_SP = ("from asp_dist.spec import CellSpec\n"
+          "from asp_dist.training.cell import run_cell\n"
+          "from asp_dist.training.methods import method_weights\n"
+          "spec = CellSpec(domain='signaling', method='sp', paired=4, train_steps=30, batch_size=16, unpaired_size=64)\n"
+          "row = run_cell(spec)\n"
+          "print(row['method'], row['loss_paired'], row['loss_unpaired'], row['lambda_unpaired'], method_weights(spec))")
+
+
+def test_a_plugin_method_trains_a_cell_and_a_broken_one_is_named(site):
+    install(site, "asp-sp", "asp_sp", METHOD, "sp = asp_sp:SP\nbroken = asp_sp:NOT_A_METHOD")
+    (site / "asp-sp-0.1.dist-info" / "entry_points.txt").write_text(
+        "[asp_dist.methods]\nsp = asp_sp:SP\nbroken = asp_sp:NOT_A_METHOD\n")
+    out = python(site, RUN_SP)
+    assert out.returncode == 0, out.stderr
+    method, paired, unpaired, lam, weights = out.stdout.split(maxsplit=4)
+    assert (method, paired, unpaired, lam) == ("sp", "None", "None", "0.0"), out.stdout
+    assert "self_play=1.0, paired=0.0, unpaired=0.0" in weights
+
+    listing = asp(site, "fields")
+    assert listing.returncode == 0 and "it is a object, not an asp_dist.method_registry.Method" in listing.stderr
+    refused = asp(site, "cell", "--domain", "signaling", "--method", "broken", "--paired", "0")
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines()[-1].startswith("asp-dist: error: method plugin 'broken'"), refused.stderr
+    assert asp(site, "cell", "--domain", "signaling", "--method", "nope", "--paired", "0").stderr.strip().endswith(
+        "choose one of asp, osp, pc, sp")

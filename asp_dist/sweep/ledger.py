@@ -33,6 +33,7 @@ from typing import Any, Iterable, Iterator
 from asp_dist import __version__
 from asp_dist.domains import DOMAINS
 from asp_dist.errors import SpecError, SweepError
+from asp_dist.method_registry import METHODS
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
 from asp_dist.spec import CellSpec
@@ -368,18 +369,28 @@ def lock_holder(sweep_dir: AnyPath) -> str | None:
 def new_manifest(name: str, space: str, specs: list[CellSpec], packing: Packing | None = None) -> dict[str, Any]:
     """The manifest of a new sweep: its grid as cell ids and resolved specs, the grid's hash, how its
     cells are grouped into Tune trials (asp_dist.sweep.packing; fixed for the sweep's life), and which
-    plugin (entry point, distribution, version) provides each of its domains."""
+    plugin (entry point, distribution, version) provides each of its domains and methods."""
     return {"name": name, "space": space, "grid_hash": grid_hash(specs), "cells": [s.cell_id for s in specs],
             "specs": [s.to_dict() for s in specs], MANIFEST_KEY: (packing or Packing()).to_dict(),
             "domains": domain_plugins(sorted({s.domain for s in specs})),
+            "methods": method_plugins(sorted({s.method for s in specs})),
             "asp_dist_version": __version__, "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
 def domain_plugins(names: list[str]) -> dict[str, dict[str, str]]:
     """domain -> {entry_point, distribution, version} of the plugin that provides it (registry.DOMAINS)."""
+    return _provenance(DOMAINS, names)
+
+
+def method_plugins(names: list[str]) -> dict[str, dict[str, str]]:
+    """method -> {entry_point, distribution, version} of the plugin that provides it (asp_dist.method_registry)."""
+    return _provenance(METHODS, names)
+
+
+def _provenance(registry, names: list[str]) -> dict[str, dict[str, str]]:
     out = {}
     for name in names:
-        plugin = DOMAINS.plugins.get(name)
+        plugin = registry.plugins.get(name)
         if plugin is not None:
             out[name] = {"entry_point": plugin.value, "distribution": plugin.distribution, "version": plugin.version}
     return out

@@ -1,4 +1,5 @@
-"""PC, OSP and ASP as weights on one loss:  L = w_sp·L_sp + λ0·L_p + λ1·L_u.
+"""PC, OSP and ASP (and any registered method, asp_dist.method_registry) as weights on one loss:
+L = w_sp·L_sp + λ0·L_p + λ1·L_u.
 
 PC   (policy cloning):            w_sp = 0, λ1 = 0  — paired data only, no self-play.
 OSP  (observationally augmented   w_sp = 1, λ1 = 0  — self-play and paired loss, interleaved
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from asp_dist.method_registry import get_method
 from asp_dist.spec import CellSpec
 
 
@@ -34,15 +36,12 @@ class LossWeights:
 
 
 def method_weights(spec: CellSpec) -> LossWeights:
+    """The weights of the registered method's terms (asp_dist.method_registry.Method) at the spec's λ0 and λ1."""
     spec = spec.resolved()
-    lambda_paired = float(spec.lambda_paired) if spec.paired > 0 else 0.0
-    if spec.method == "pc":
-        return LossWeights(self_play=0.0, paired=lambda_paired, unpaired=0.0)
-    if spec.method == "osp":
-        return LossWeights(self_play=1.0, paired=lambda_paired, unpaired=0.0)
-    if spec.method == "asp":
-        return LossWeights(self_play=1.0, paired=lambda_paired, unpaired=float(spec.lambda_unpaired))
-    raise ValueError(f"unknown method {spec.method!r}")
+    method = get_method(spec.method)
+    return LossWeights(self_play=1.0 if method.self_play else 0.0,
+                       paired=float(spec.lambda_paired) if method.paired and spec.paired > 0 else 0.0,
+                       unpaired=float(spec.lambda_unpaired) if method.adversarial else 0.0)
 
 
 def compose_loss(weights: LossWeights, self_play: torch.Tensor | None, paired: torch.Tensor | None,
