@@ -61,6 +61,37 @@ def start_cli(*args: str, log_dir: Path, base_env: dict[str, str] | None = None,
                                 stdout=out, stderr=err, start_new_session=True, cwd=cwd)
 
 
+# ---- the processes of a driver's Ray ----------------------------------------------------------------------
+def session_processes(sid: int, ray_temp: str) -> dict[int, str]:
+    """Processes started by the driver (its session: start_new_session) or naming this test's Ray temp dir."""
+    found = {}
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if os.getsid(int(proc.name)) == sid or ray_temp in cmdline:
+                found[int(proc.name)] = cmdline[:100]
+        except OSError:
+            continue
+    return found
+
+
+def wait_until_gone(sid: int, ray_temp: str, seconds: float) -> dict[int, str]:
+    deadline = time.monotonic() + seconds
+    while (left := session_processes(sid, ray_temp)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return left
+
+
+def kill_all(sid: int, ray_temp: str) -> None:
+    for pid in session_processes(sid, ray_temp):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def read_log(log_dir: Path) -> tuple[str, str]:
     return (log_dir / "out").read_text(), (log_dir / "err").read_text()
 

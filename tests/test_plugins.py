@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.harness import env
+from harness import env
 
 GOOD = '''
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts

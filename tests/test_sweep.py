@@ -31,13 +31,16 @@ from harness import (
     comparable_rows,
     env,
     expected_rows,
+    kill_all,
     kill_group,
     parquet_files,
     ray_cluster,
     resumable_mid_cell,
     space,
+    session_processes,
     start_cli,
     wait_for,
+    wait_until_gone,
 )
 
 from asp_dist.cli import main
@@ -137,19 +140,32 @@ def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, m
 
 
 def test_sigkill_of_driver_then_resume(tmp_path):
+    """A SIGKILLed driver leaves no process of its Ray behind (the reaper), and resume finishes its grid: every
+    cell once, the cells running at the kill continued from their checkpoints, rows as uninterrupted."""
     grid = space(tmp_path, KILL_GRID)
     specs = expand(grid)
     results = tmp_path / "results"
+    ray_temp = f"/tmp/asp-sk-{os.getpid()}"  # short: Ray's socket paths live under it
     driver = start_cli("sweep", grid, "--name", "k", "--results", str(results), "--checkpoint-every", "0.3",
-                       log_dir=tmp_path / "log")
+                       "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log")
     try:
         # Killed once a cell has its row and another, still running, has a checkpoint Tune's state knows.
         wait_for(lambda: resumable_mid_cell(results / "k"), 300, while_alive=driver,
                  what="a finished cell and a checkpointed running one")
+        running = session_processes(driver.pid, ray_temp)
+        assert any("raylet" in c for c in running.values()), running
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
+        killed = time.monotonic()
+        # Before the reaper: the raylet's agents lived on for a minute after the driver, trying to reach the GCS.
+        left = wait_until_gone(driver.pid, ray_temp, 10)
+        reaper_log = Path(ray_temp, f"reaper-{driver.pid}.log")
+        assert not left, (f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}; "
+                          f"the reaper's log: {reaper_log.read_text() if reaper_log.exists() else 'none'}")
     finally:
         kill_group(driver)  # Ray processes the killed driver started
+        kill_all(driver.pid, ray_temp)
+        shutil.rmtree(ray_temp, ignore_errors=True)
     done_at_kill = len(parquet_files(results / "k"))
     assert 1 <= done_at_kill < len(specs)
     status = cli("status", "k", "--results", str(results))

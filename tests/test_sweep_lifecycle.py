@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
-from harness import env, fingerprint, free_port, parquet_files
+from harness import env, fingerprint, free_port, kill_all, parquet_files, session_processes, wait_until_gone
 
 from asp_dist import cli
 from asp_dist.data.mnist import MNISTError
@@ -280,36 +280,6 @@ def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeyp
 
 
 # ---- stopping a running sweep --------------------------------------------------------------------------------
-def session_processes(sid: int, ray_temp: str) -> dict[int, str]:
-    """Processes started by the driver (its session: start_new_session) or naming this test's Ray temp dir."""
-    found = {}
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit() or int(proc.name) == os.getpid():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            if os.getsid(int(proc.name)) == sid or ray_temp in cmdline:
-                found[int(proc.name)] = cmdline[:100]
-        except OSError:
-            continue
-    return found
-
-
-def wait_until_gone(sid: int, ray_temp: str, seconds: float) -> dict[int, str]:
-    deadline = time.monotonic() + seconds
-    while (left := session_processes(sid, ray_temp)) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    return left
-
-
-def kill_all(sid: int, ray_temp: str) -> None:
-    for pid in session_processes(sid, ray_temp):
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-
-
 FAKE_DRIVER = """
 import subprocess, sys, time
 from asp_dist.sweep import tune
@@ -515,27 +485,3 @@ def test_a_full_disk_stops_the_sweep_in_one_line_and_resume_finishes_it(tmp_path
     df = store.read_rows(results / "smoke", strict=True)
     assert len(df) == 18 and df["cell_id"].is_unique
     assert all(f.stat().st_mtime_ns == m for f, m in first.items()), "a finished cell was written again"
-
-
-@pytest.mark.slow
-def test_after_a_sigkill_of_the_driver_no_process_of_its_ray_survives(tmp_path):
-    ray_temp = f"/tmp/asp-lk-{os.getpid()}"
-    sweep_dir = tmp_path / "results" / "smoke"
-    driver = start_smoke(tmp_path, ray_temp)
-    try:
-        wait_for_first_row(driver, sweep_dir)
-        running = session_processes(driver.pid, ray_temp)
-        assert any("raylet" in c for c in running.values()), running
-        driver.send_signal(signal.SIGKILL)
-        driver.wait(30)
-        killed = time.monotonic()
-        # Before: the raylet's agents lived on for a minute after the driver, trying to reach the dead GCS.
-        left = wait_until_gone(driver.pid, ray_temp, 10)
-        reaper_log = Path(ray_temp, f"reaper-{driver.pid}.log")
-        assert not left, (f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}; "
-                          f"the reaper's log: {reaper_log.read_text() if reaper_log.exists() else 'none'}")
-    finally:
-        kill_all(driver.pid, ray_temp)
-        import shutil
-
-        shutil.rmtree(ray_temp, ignore_errors=True)
