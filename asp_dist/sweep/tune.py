@@ -74,6 +74,7 @@ from asp_dist.results import store  # noqa: E402
 from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep import ledger  # noqa: E402
+from asp_dist.sweep import reaper as reaper_program  # noqa: E402
 from asp_dist.sweep.base_cache import get_base  # noqa: E402
 from asp_dist.sweep.ledger import SweepResult  # noqa: E402
 from asp_dist.sweep.packing import Unit, check_packing, describe_units, make_units, resolve_packing  # noqa: E402
@@ -558,105 +559,15 @@ def _connect_deadline(address: str, timeout_s: float) -> Iterator[None]:
 
 
 # ---- the embedded Ray's processes and session dirs --------------------------------------------------
-# Ray's raylet and GCS die with the driver (PR_SET_PDEATHSIG), but after a SIGKILL of the driver the
-# raylet's agents spend a minute trying to tell the dead GCS about it, and workers may take a few
-# seconds. The reaper is a tiny process (no Ray, no torch) that waits for the driver to close a pipe --
-# at the end of ray_session or when it dies, however -- and then kills what remains of the embedded
-# Ray. While it waits it keeps a family tree: the node processes the driver starts (children whose
-# command line names the temp dir) and every descendant of those, by (pid, start time) so that a reused
-# pid is never mistaken for ours. It scans /proc twice a second while Ray starts, then every 2 s (a
-# few ms each). At the end it also kills every process of the raylet it saw (RAY_RAYLET_PID in its
-# environment), which catches a worker born after the last scan, and repeats until a scan finds none.
-# It writes what it did to reaper-<driver pid>.log in the temp dir, for whoever wonders what survived.
-REAPER = r"""
-import os, select, signal, sys, time
-signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle; this cleans up after it
-driver, temp_dir = int(sys.argv[1]), os.fsencode(sys.argv[2])
-os.makedirs(sys.argv[2], exist_ok=True)
-log = open(os.path.join(sys.argv[2], "reaper-%d.log" % driver), "a", buffering=1)
-started = time.monotonic()
-
-def stat(pid):  # (command name, parent pid, start time) or None
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            data = f.read()
-    except OSError:
-        return None
-    fields = data[data.rindex(b")") + 2:].split()
-    return data[data.index(b"(") + 1:data.rindex(b")")], int(fields[1]), int(fields[19])
-
-def read(pid, name):
-    try:
-        with open(f"/proc/{pid}/{name}", "rb") as f:
-            return f.read().split(b"\0")
-    except OSError:
-        return []
-
-def snapshot():
-    found = {}
-    for p in os.listdir("/proc"):
-        if p.isdigit() and int(p) not in (driver, os.getpid()):
-            st = stat(int(p))
-            if st:
-                found[int(p)] = st
-    return found
-
-tracked, raylet = {}, None  # pid -> start time; (pid, start time) of the raylet
-
-def scan():
-    global raylet
-    procs = snapshot()
-    for pid, (name, ppid, start) in procs.items():
-        if pid not in tracked and ppid == driver and any(temp_dir in a for a in read(pid, "cmdline")):
-            tracked[pid] = start
-            log.write("%.1f s: node process %d %s\n" % (time.monotonic() - started, pid, name.decode(errors="replace")))
-            if name == b"raylet" and raylet is None:
-                raylet = (pid, start)
-    grew = True
-    while grew:  # descendants of what we track (children appear after their parents in no fixed order)
-        grew = False
-        for pid, (name, ppid, start) in procs.items():
-            if pid not in tracked and tracked.get(ppid, start + 1) <= start:
-                tracked[pid] = start
-                grew = True
-    for pid in [p for p, s in tracked.items() if procs.get(p, (0, 0, None))[2] != s]:
-        del tracked[pid]  # gone (or its pid reused): forget it
-
-while True:
-    fast = raylet is None or time.monotonic() - started < 30
-    if select.select([0], [], [], 0.5 if fast else 2.0)[0] and not os.read(0, 4096):
-        break  # EOF: the driver closed the pipe or died
-    scan()
-log.write("%.1f s: the driver is done; raylet %s, tracking %d\n" % (time.monotonic() - started, raylet, len(tracked)))
-quiet = 0
-for attempt in range(20):  # until two scans in a row find nothing of ours (at most ~6 s)
-    killed = []
-    for pid, (name, ppid, start) in snapshot().items():
-        ours = tracked.get(pid) == start or (
-            raylet is not None and start >= raylet[1] and b"RAY_RAYLET_PID=%d" % raylet[0] in read(pid, "environ"))
-        if ours:
-            try:
-                os.kill(pid, signal.SIGKILL)
-                killed.append("%d %s" % (pid, name.decode(errors="replace")))
-            except OSError:
-                pass
-    if killed:
-        log.write("%.1f s: killed %s\n" % (time.monotonic() - started, ", ".join(killed)))
-    quiet = 0 if killed else quiet + 1
-    if quiet == 2:
-        break
-    time.sleep(0.3)
-log.write("%.1f s: done\n" % (time.monotonic() - started))
-"""
-
-
+# The reaper (asp_dist/sweep/reaper.py, run by path: standard library only) kills what is left of the
+# embedded Ray when the driver ends, however it ends; it watches a pipe whose other end only the driver holds.
 def _start_reaper(temp_dir: str) -> tuple[subprocess.Popen, int] | None:
     """The reaper of the embedded Ray about to start (Linux: it reads /proc), and the pipe it watches."""
     if not os.path.isdir("/proc/self"):
         return None
     read_end, write_end = os.pipe()  # not inheritable: only the reaper gets an end of it
     try:
-        proc = subprocess.Popen([sys.executable, "-I", "-S", "-c", REAPER, str(os.getpid()), temp_dir],
+        proc = subprocess.Popen([sys.executable, "-I", "-S", reaper_program.__file__, str(os.getpid()), temp_dir],
                                 stdin=read_end, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError as e:
         os.close(write_end)
