@@ -276,10 +276,13 @@ def check_run_flags(args: argparse.Namespace) -> None:
                             f"use a directory of at most {107 - RAY_SOCKET_SUFFIX} characters, e.g. /tmp/asp-ray")
 
 
-def _run_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    return dict(results=args.results, workers=args.workers, address=args.address, max_failures=args.max_failures,
-                checkpoint_every_s=args.checkpoint_every, ray_temp_dir=args.ray_temp_dir, dashboard=args.dashboard,
-                connect_timeout_s=args.connect_timeout, pack=args.pack, pack_size=args.pack_size)
+def _run_options(args: argparse.Namespace):
+    from asp_dist.sweep.plan import RunOptions
+
+    return RunOptions(results=args.results, workers=args.workers, address=args.address,
+                      max_failures=args.max_failures, checkpoint_every_s=args.checkpoint_every,
+                      ray_temp_dir=args.ray_temp_dir, dashboard=args.dashboard,
+                      connect_timeout_s=args.connect_timeout, pack=args.pack, pack_size=args.pack_size)
 
 
 def _interruptible(args: argparse.Namespace, name_of, run) -> int:
@@ -329,22 +332,21 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     def run() -> int:
         from asp_dist.sweep.ledger import check_address, check_can_start
-        from asp_dist.sweep.spaces import expand, space_file
+        from asp_dist.sweep.plan import Plan
 
         # Everything a user can get wrong is refused before paying for the Ray import, and nothing is written
         # until then: flags, space, name, results dir, an existing sweep's grid and lock, the data, a cluster
         # that does not answer.
         check_run_flags(args)
-        specs = expand(args.space)
-        space = space_file(args.space).stem
-        name.append(args.name if args.name is not None else space)
-        check_can_start(args.results, name[0], specs, space, args.pack, args.pack_size)
-        check_data(specs)
+        plan = Plan.from_space(args.space, args.name)  # read and resolved once: the run takes this plan
+        name.append(plan.name)
+        check_can_start(args.results, plan.name, plan.specs, plan.space, args.pack, args.pack_size)
+        check_data(plan.specs)
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
-        from asp_dist.sweep.tune import run_sweep
+        from asp_dist.sweep.tune import run_plan
 
-        return _finish(run_sweep(args.space, name=args.name, **_run_kwargs(args)))
+        return _finish(run_plan(plan, _run_options(args)))
 
     return _interruptible(args, lambda: name[0] if name else None, run)
 
@@ -352,16 +354,18 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_resume(args: argparse.Namespace) -> int:
     def run() -> int:
         from asp_dist.sweep.ledger import check_address, check_can_resume
+        from asp_dist.sweep.plan import Plan
 
         check_run_flags(args)
         # an unknown or broken sweep too, and a packing other than its own, before the Ray import
-        specs = check_can_resume(args.results, args.name, args.pack, args.pack_size)
-        check_data(specs)
+        space, specs = check_can_resume(args.results, args.name, args.pack, args.pack_size)  # the manifest, once
+        plan = Plan(args.name, space, specs)
+        check_data(plan.specs)
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
-        from asp_dist.sweep.tune import resume_sweep
+        from asp_dist.sweep.tune import run_plan
 
-        return _finish(resume_sweep(args.name, **_run_kwargs(args)))
+        return _finish(run_plan(plan, _run_options(args)))
 
     return _interruptible(args, lambda: args.name, run)
 

@@ -129,7 +129,7 @@ def nothing_may_run(monkeypatch):
         raise AssertionError("validation let this case through: work would start")
 
     fake_tune = types.ModuleType("asp_dist.sweep.tune")
-    fake_tune.run_sweep = fake_tune.resume_sweep = refuse
+    fake_tune.run_plan = fake_tune.run_sweep = fake_tune.resume_sweep = refuse
     monkeypatch.setitem(sys.modules, "asp_dist.sweep.tune", fake_tune)  # never Ray
     monkeypatch.setattr(cell_module, "run_cell", refuse)
     monkeypatch.setattr(cli, "run_stats_job", refuse)

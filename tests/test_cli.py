@@ -32,7 +32,7 @@ def test_cell_prints_row_and_writes_parquet(tmp_path, capsys):
     assert row["method"] == "asp" and row["train_steps"] == 40
     df = pd.read_parquet(out)
     assert len(df) == 1 and df.loc[0, "cell_id"] == row["cell_id"]
-    assert pq.read_schema(out).names == row_schema().names  # the sweep store's pinned schema
+    assert pq.read_schema(out).names == row_schema("signaling").names  # the sweep store's pinned schema
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp file left
 
 

@@ -214,7 +214,7 @@ def test_rows_without_the_pack_column_still_read(tmp_path):
     new_row = {**spec.to_dict(), "cell_id": spec.cell_id, "eval_mixed": 0.5, "pack": "signaling/trial-0/x/1of1-k2"}
     assert store.write_row(tmp_path, new_row, sweep_id="exp")
     old = pa.Table.from_pylist([{**other.to_dict(), "cell_id": other.cell_id, "eval_mixed": 0.25, "sweep_id": "old"}],
-                               schema=pa.schema([f for f in row_schema() if f.name != "pack"]))
+                               schema=pa.schema([f for f in row_schema("signaling") if f.name != "pack"]))
     path = store.cell_path(tmp_path, other.domain, other.method, other.cell_id)
     path.parent.mkdir(parents=True)
     pq.write_table(old, path)
@@ -464,7 +464,8 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
     for name in ("packed", "single"):  # one file per cell, the pinned schema
         files = store.cell_files(results / name, strict=True)
         assert sorted(p.stem for p in files) == sorted(s.cell_id for s in specs)
-        assert all(pq.read_schema(p).remove_metadata() == row_schema() for p in files)
+        assert all(pq.read_schema(p).remove_metadata() == row_schema(p.parts[-3][len("domain="):])
+                   for p in files)
     units = make_units(specs, Packing("trial", 21))
     pack_of = {cid: u.pack_id for u in units for cid in u.cell_ids}
     rows = store.read_rows(results / "packed").set_index("cell_id", drop=False)

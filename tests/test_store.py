@@ -57,7 +57,7 @@ def test_unknown_column_is_an_error_and_missing_is_null(rows):
     partial = {k: v for k, v in rows[0].items() if k != "loss_disc"}
     table = row_table(partial)
     assert table.column("loss_disc").to_pylist() == [None]
-    assert table.schema == row_schema()
+    assert table.schema == row_schema(rows[0]["domain"])
 
 
 def test_write_is_atomic_fixed_name_and_never_overwrites(tmp_path, rows):
@@ -187,7 +187,7 @@ def test_base_from_cache_gives_the_same_row_as_training_it(tmp_path):
 def test_pinned_schema_file_roundtrip(tmp_path, rows):
     store.write_row(tmp_path, rows[1], sweep_id="s")
     path = store.cell_path(tmp_path, rows[1]["domain"], rows[1]["method"], rows[1]["cell_id"])
-    assert pq.read_schema(path).remove_metadata() == row_schema()
+    assert pq.read_schema(path).remove_metadata() == row_schema(rows[1]["domain"])
 
 
 def test_rejected_base_is_remembered_for_the_other_cells_of_its_trial(tmp_path, monkeypatch):

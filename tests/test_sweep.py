@@ -107,7 +107,7 @@ def test_smoke_sweep_end_to_end(smoke):
     files = parquet_files(sweep_dir)
     assert len(files) == 18
     for f in files:
-        assert pq.read_schema(f).remove_metadata() == row_schema()
+        assert pq.read_schema(f).remove_metadata() == row_schema("signaling")
     df = store.read_rows(sweep_dir)
     assert len(df) == 18 and df["cell_id"].is_unique
     assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")}

@@ -470,14 +470,14 @@ def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], sp
 
 
 def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
-                     pack_size: int | None = None) -> list[CellSpec]:
-    """Everything `resume` refuses, checked without writing; returns the grid's specs."""
+                     pack_size: int | None = None) -> tuple[str, list[CellSpec]]:
+    """Everything `resume` refuses, checked without writing; returns the sweep's space and specs."""
     sweep_dir, manifest = read_sweep(results, name)
     specs = specs_from_manifest(manifest)
     resolve_packing(pack, pack_size, manifest)
     check_sweep_dir_readonly(sweep_dir)
     check_not_running(sweep_dir)
-    return specs
+    return manifest["space"], specs
 
 
 def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:

@@ -77,9 +77,9 @@ from asp_dist.sweep import ledger  # noqa: E402
 from asp_dist.sweep import reaper as reaper_program  # noqa: E402
 from asp_dist.sweep.base_cache import get_base  # noqa: E402
 from asp_dist.sweep.ledger import SweepResult  # noqa: E402
-from asp_dist.sweep.packing import Unit, check_packing, describe_units, make_units, resolve_packing  # noqa: E402
+from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing  # noqa: E402
+from asp_dist.sweep.plan import Plan, RunOptions  # noqa: E402
 from asp_dist.sweep.progress import SweepCounter  # noqa: E402
-from asp_dist.sweep.spaces import expand, space_file  # noqa: E402
 from asp_dist.training import packed  # noqa: E402
 from asp_dist.training.bases import BaseRejected  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402
@@ -88,8 +88,6 @@ from asp_dist.training.packed.single import CellDiverged  # noqa: E402
 __all__ = ["run_sweep", "resume_sweep", "SweepResult", "train_cell"]
 
 OBJECT_STORE_BYTES = 100 * 1024**2  # cells exchange no large objects; Ray's minimum is ~75 MB
-DEFAULT_MAX_FAILURES = 2
-DEFAULT_CHECKPOINT_EVERY_S = 30.0
 TUNE_DIR = "tune"
 TUNE_CURRENT = "current.json"  # which Tune experiment covers which cells
 CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
@@ -802,34 +800,25 @@ def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pen
 
 
 # ---- public entry points ------------------------------------------------------------------------
-def run_sweep(space: str, *, name: str | None = None, results: str | Path = store.DEFAULT_RESULTS, workers: int = 2,
-              address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
-              checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
-              dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
-              stream: TextIO | None = None, pack: str | None = None, pack_size: int | None = None) -> SweepResult:
-    """Run (or continue) the sweep ``name`` over ``space``; see the module docstring. ``pack`` / ``pack_size``:
-    how cells are grouped into Tune trials (asp_dist.sweep.packing; None: a new sweep runs one cell per
-    trial, an existing one keeps the packing it was started with)."""
-    ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
-    check_packing(pack, pack_size)
-    specs = expand(space)
-    space_name = space_file(space).stem
-    return _run(specs, space_name, name or space_name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream, pack, pack_size)
+def run_plan(plan: Plan, options: RunOptions | None = None, stream: TextIO | None = None) -> SweepResult:
+    """Run (or continue) the sweep of `plan` (see the module docstring) as `options` say."""
+    options = options or RunOptions()
+    options.check()
+    return _run(plan, options, stream)
 
 
-def resume_sweep(name: str, *, results: str | Path = store.DEFAULT_RESULTS, workers: int = 2,
-                 address: str | None = None, max_failures: int = DEFAULT_MAX_FAILURES,
-                 checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S, ray_temp_dir: str | None = None,
-                 dashboard: bool = False, connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S,
-                 stream: TextIO | None = None, pack: str | None = None, pack_size: int | None = None) -> SweepResult:
+def run_sweep(space: str, *, name: str | None = None, options: RunOptions | None = None,
+              stream: TextIO | None = None) -> SweepResult:
+    """Run (or continue) the sweep ``name`` (default: the space's name) over ``space``."""
+    (options or RunOptions()).check()
+    return run_plan(Plan.from_space(space, name), options, stream)
+
+
+def resume_sweep(name: str, *, options: RunOptions | None = None, stream: TextIO | None = None) -> SweepResult:
     """Continue a sweep from its manifest (no space file needed), with the packing it was started with."""
-    ledger.check_run_options(workers, max_failures, checkpoint_every_s, connect_timeout_s)
-    check_packing(pack, pack_size)
-    _, manifest = ledger.read_sweep(results, name)
-    specs = ledger.specs_from_manifest(manifest)
-    return _run(specs, manifest["space"], name, results, workers, address, max_failures,
-                checkpoint_every_s, ray_temp_dir, dashboard, connect_timeout_s, stream, pack, pack_size)
+    options = options or RunOptions()
+    options.check()
+    return run_plan(Plan.from_sweep(options.results, name), options, stream)
 
 
 @contextmanager
@@ -851,17 +840,19 @@ def _disk_full_is_one_line(sweep_dir: AnyPath, name: str, results: str | Path) -
                        f"then: asp-dist resume {name} --results {results}") from None
 
 
-def _run(specs: list[CellSpec], space: str, name: str, results: str | Path, workers: int, address: str | None,
-         max_failures: int, checkpoint_every_s: float, ray_temp_dir: str | None, dashboard: bool,
-         connect_timeout_s: float, stream: TextIO | None, pack: str | None = None,
-         pack_size: int | None = None) -> SweepResult:
+def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
+    specs, space, name = plan.specs, plan.space, plan.name
+    results, workers, address = options.results, options.workers, options.address
+    max_failures, checkpoint_every_s, connect_timeout_s = (options.max_failures, options.checkpoint_every_s,
+                                                           options.connect_timeout_s)
+    pack, pack_size = options.pack, options.pack_size
     sweep_dir = ledger.sweep_dir_for(results, name)
     stream = stream or sys.stderr
     grid = {s.cell_id: f"{s.domain}/{s.method}" for s in specs}
 
     def session():
-        return ray_session(workers, address, ray_temp_dir, dashboard=dashboard, connect_timeout_s=connect_timeout_s,
-                           stream=stream)
+        return ray_session(workers, address, options.ray_temp_dir, dashboard=options.dashboard,
+                           connect_timeout_s=connect_timeout_s, stream=stream)
 
     with ledger.sigterm_as_interrupt(), _disk_full_is_one_line(sweep_dir, name, results):
         if address:  # a cluster that does not answer is refused before anything is written
