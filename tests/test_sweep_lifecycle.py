@@ -128,7 +128,7 @@ def test_a_head_that_accepts_but_never_answers_is_given_up_on_in_time(tmp_path):
 
 # ---- the embedded Ray: dashboard, session dirs ---------------------------------------------------------------
 def test_embedded_ray_starts_no_dashboard_unless_asked_and_keeps_the_sweeps_sigterm(monkeypatch, tmp_path):
-    from asp_dist.sweep import tune as sweep_tune
+    from asp_dist.sweep import ray_host
 
     calls = []
 
@@ -140,17 +140,17 @@ def test_embedded_ray_starts_no_dashboard_unless_asked_and_keeps_the_sweeps_sigt
         signal.signal(signal.SIGTERM, lambda *a: sys.exit(15))  # what ray.init does
         return Context()
 
-    monkeypatch.setattr(sweep_tune.ray, "init", fake_init)
-    monkeypatch.setattr(sweep_tune.ray, "shutdown", lambda: None)
-    monkeypatch.setattr(sweep_tune.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray_host.ray, "init", fake_init)
+    monkeypatch.setattr(ray_host.ray, "shutdown", lambda: None)
+    monkeypatch.setattr(ray_host.ray, "is_initialized", lambda: False)
     pruned = []
-    monkeypatch.setattr(sweep_tune, "prune_ray_sessions", lambda d: pruned.append(d) or [])
-    monkeypatch.setattr(sweep_tune, "_start_reaper", lambda d: None)
+    monkeypatch.setattr(ray_host, "prune_ray_sessions", lambda d: pruned.append(d) or [])
+    monkeypatch.setattr(ray_host, "_start_reaper", lambda d: None)
     out = io.StringIO()
     with ledger.sigterm_as_interrupt():
-        with sweep_tune.ray_session(2, None, str(tmp_path), stream=out):
+        with ray_host.ray_session(2, None, str(tmp_path), stream=out):
             assert signal.getsignal(signal.SIGTERM) is ledger._sigterm, "ray.init's SIGTERM handler was kept"
-        with sweep_tune.ray_session(2, None, str(tmp_path), dashboard=True, stream=out):
+        with ray_host.ray_session(2, None, str(tmp_path), dashboard=True, stream=out):
             pass
     assert calls[0]["include_dashboard"] is False and calls[0]["dashboard_host"] == "127.0.0.1"
     assert calls[1]["include_dashboard"] is True and calls[1]["dashboard_host"] == "127.0.0.1"
@@ -168,7 +168,7 @@ def test_a_sigterm_while_ray_starts_reaches_the_sweep_whatever_handler_ray_insta
     init installs a handler that swallows the signal, as the lost case did, then is sent a SIGTERM."""
     from ray._private import utils as ray_utils
 
-    from asp_dist.sweep import tune as sweep_tune
+    from asp_dist.sweep import ray_host
 
     started = []
 
@@ -178,15 +178,15 @@ def test_a_sigterm_while_ray_starts_reaches_the_sweep_whatever_handler_ray_insta
         started.append(True)
         return type("Context", (), {"dashboard_url": None})()
 
-    monkeypatch.setattr(sweep_tune.ray, "init", fake_init)
+    monkeypatch.setattr(ray_host.ray, "init", fake_init)
     shut = []
-    monkeypatch.setattr(sweep_tune.ray, "shutdown", lambda: shut.append(True))
-    monkeypatch.setattr(sweep_tune.ray, "is_initialized", lambda: False)
-    monkeypatch.setattr(sweep_tune, "prune_ray_sessions", lambda d: [])
-    monkeypatch.setattr(sweep_tune, "_start_reaper", lambda d: None)
+    monkeypatch.setattr(ray_host.ray, "shutdown", lambda: shut.append(True))
+    monkeypatch.setattr(ray_host.ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray_host, "prune_ray_sessions", lambda d: [])
+    monkeypatch.setattr(ray_host, "_start_reaper", lambda d: None)
     with ledger.sigterm_as_interrupt():
         with pytest.raises(KeyboardInterrupt):
-            with sweep_tune.ray_session(2, None, str(tmp_path)):
+            with ray_host.ray_session(2, None, str(tmp_path)):
                 pytest.fail("the sweep went on after a SIGTERM during start-up")
         assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
     assert started == [True] and shut == [True] and ledger.interrupted_by == signal.SIGTERM
@@ -194,7 +194,7 @@ def test_a_sigterm_while_ray_starts_reaches_the_sweep_whatever_handler_ray_insta
 
 
 def test_old_ray_sessions_are_pruned_but_never_one_in_use(tmp_path):
-    from asp_dist.sweep.tune import prune_ray_sessions
+    from asp_dist.sweep.ray_host import prune_ray_sessions
 
     dead = 99_999_999  # above any pid_max: no such process
     names = [f"session_2020-01-0{day}_00-00-00_000000_{dead}" for day in range(1, 10)]
