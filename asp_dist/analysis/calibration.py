@@ -55,18 +55,11 @@ def varying_knobs(rows: pd.DataFrame) -> list[str]:
     return [c for c in knobs if rows[c].astype(str).nunique() > 1]
 
 
-# The defaults the pre-registered protocol counts changed knobs from ("today's", 2026-11-24: docs/
-# reproduction.md), where a domain's default changed since (docs/decisions.md, "Domain defaults from
-# the reproduction study"). Pinned so that `asp-dist select` on the calibration rows gives what it gave.
-REGISTERED_DEFAULTS: dict[str, dict] = {
-    "particles": dict(lambda_unpaired_schedule="constant", lambda_schedule_frac=0.5, base_steps_growth=1.0,
-                      base_max_attempts=5),
-    "vae": dict(lambda_unpaired=1.0),
-}
-
-
 def _defaults(domain: str) -> dict:
-    return CellSpec(domain=domain, **REGISTERED_DEFAULTS.get(domain, {})).resolved().to_dict()
+    """The defaults the pre-registered protocol counts changed knobs from: today's, overlaid with the values
+    a domain had when the protocol was registered, where they changed since (Domain.protocol_defaults), so
+    that `asp-dist select` on the calibration rows gives what it gave."""
+    return CellSpec(domain=domain, **get_domain(domain).protocol_defaults).resolved().to_dict()
 
 
 def settings(rows: pd.DataFrame, domain: str, metric: str = "eval_mixed") -> list[Setting]:

@@ -77,6 +77,9 @@ class Domain(ABC):
     # unset, stay in every cell's identity, so that no recorded cell id moves. A new domain leaves it False:
     # its knobs then enter the identity of its own cells only, and installing it moves no other cell.
     legacy_identity: bool = False
+    # The values of knobs whose default changed after the reproduction study's protocol was registered
+    # (2026-11-24, docs/reproduction.md): `asp-dist select` counts changed knobs from these.
+    protocol_defaults: dict[str, Any] = {}
     # Knob values that make a cell of this domain run in about a second: what `asp-dist check-domain` and the
     # registry-wide tests (tests/test_domain_registry.py) run it with.
     smoke: dict[str, Any] = {}

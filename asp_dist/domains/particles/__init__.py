@@ -71,6 +71,8 @@ class ParticlesDomain(GameDomain):
              'only, as the paper states.', neutral=True, shapes_base=False, optional=False),
     )
     legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    protocol_defaults = dict(lambda_unpaired_schedule="constant", lambda_schedule_frac=0.5, base_steps_growth=1.0,
+                             base_max_attempts=5)  # before the reproduction study changed them
     # A cell in about a second (asp-dist check-domain, the registry-wide tests)
     smoke = dict(train_steps=40, base_train_steps=30, particles_base_envs=32, eval_episodes=64, unpaired_size=256,
                  particles_hidden=16, particles_message_dim=16, particles_accept_return=0.0)

@@ -63,6 +63,7 @@ class VAEDomain(GameDomain):
              neutral='sum', shapes_base=False, optional=False),
     )
     legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
+    protocol_defaults = dict(lambda_unpaired=1.0)  # before the reproduction study changed them
     # A cell in about a second (asp-dist check-domain, the registry-wide tests)
     smoke = dict(vae_train_images=300, vae_hidden=64, vae_latent_dim=4, base_train_steps=40, vae_base_batch=32,
                  train_steps=20, batch_size=32, unpaired_size=64, eval_episodes=200, disc_hidden=16)
