@@ -6,6 +6,8 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 "$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
 "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test]"
+# The worked plugin of docs/extending.md, installed as a user installs one: the registry-wide tests run on it.
+"$PY" -m pip install --quiet --disable-pip-version-check -e examples/referential-game
 
 # tests/test_report_html.py opens report.html in Debian's headless Chromium (it skips without one).
 # As root with apt-get, install it when missing; a failure only warns, the Python install stands.
