@@ -53,8 +53,10 @@ def test_every_committed_space_expands_far_within_the_bounds(name):
 
 
 def test_golden_cells_and_domain_defaults_are_far_within_the_bounds():
+    # The built-ins' bounds sit far above their defaults (a rule of this package; a plugin sets its own).
+    built_in = [d for d in DOMAINS if DOMAINS[d].legacy_identity]
     for spec in [CellSpec.from_dict(d).resolved() for d in golden_specs()] + [CellSpec(domain=d).resolved()
-                                                                               for d in DOMAINS]:
+                                                                               for d in built_in]:
         assert_far_within_bounds(spec)
 
 
