@@ -28,7 +28,7 @@ from asp_dist.spec import (
 SETTINGS = settings(max_examples=60, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 BASE = {"domain": "signaling"}
 
-ALLOWED = {**CHOICES, "domain": tuple(DOMAINS), "method": METHODS}
+ALLOWED = {**CHOICES, "domain": tuple(sorted(DOMAINS)), "method": tuple(sorted(METHODS))}
 FLOATS = [n for n in FIELD_NAMES if field_type(n) is float]
 INTS = [n for n in FIELD_NAMES if field_type(n) is int]
 BOOLS = [n for n in FIELD_NAMES if field_type(n) is bool]
