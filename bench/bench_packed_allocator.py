@@ -32,7 +32,7 @@ def one(domain: str, k: int, retain: bool, updates: int) -> dict:
     import torch
     from bench_packing import build_pack, cell_data, grid_cells, packed_trainer
 
-    from asp_dist.training.packed import stacked
+    from asp_dist.training import stacked
 
     torch.set_num_threads(1)
     if retain:
@@ -55,7 +55,7 @@ def one(domain: str, k: int, retain: bool, updates: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    from asp_dist.training.packed import PACKED
+    from bench_packing import PACKED
 
     ap.add_argument("--domain", choices=list(PACKED), default="particles")
     ap.add_argument("--ks", default="21,64", help="pack sizes")

@@ -7,17 +7,17 @@ peak memory per worker.
     OMP_NUM_THREADS=1 python bench/bench_packing.py --domains levers --K 8 21 --no-vae
     OMP_NUM_THREADS=1 python bench/bench_packing.py --vae-only                     # the VAE part only
 
-Packed domains (--domains, default every domain registered in asp_dist.training.packed.PACKED;
+Packed domains (--domains, default every registered domain with a packed trainer, asp_dist.training.engines;
 a newly registered one is benchmarked without edits here). Cells are the domain's paper grid
 (the space ``paper-<domain>``, or GRID_SPACE below) in the order trial, paired, method
 (pc, osp, asp): a pack of K holds the first K, so K = 21 is one trial's cells (7 paired counts x
 3 methods) and every K has the grid's mix of methods. For each K, in a fresh process (its peak
 RSS is its own, ru_maxrss):
 
-- packed: one pack of the K cells on the domain's packed trainer (the class its run_pack is bound
-  to), members in the trainer's member_order, as run_pack builds it;
+- packed: one pack of the K cells on the domain's packed trainer, members in the trainer's
+  member_order, as the cell pipeline builds it;
 - single: the same K cells one at a time on the trainer run_cell picks
-  (asp_dist.training.cell.choose_trainer), i.e. today's sweep path, whatever that trainer is.
+  (asp_dist.training.engines.lone_trainer), i.e. today's sweep path, whatever that trainer is.
   K = 1 is one trial's cells, each alone: on the single path and as 1-member packs (the packed
   trainer's own overhead).
 
@@ -70,17 +70,18 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 from _common import machine_info, peak_rss_mib, timed  # noqa: E402
 
-from asp_dist.domains import get_domain  # noqa: E402
+from asp_dist.domains import DOMAINS, get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep.packing import DEFAULT_PACK_SIZE  # noqa: E402
 from asp_dist.sweep.spaces import expand  # noqa: E402
-from asp_dist.training import cell  # noqa: E402
+from asp_dist.training.engines import lone_trainer, pack_key  # noqa: E402
+from asp_dist.training.engines import pack_trainer as packed_trainer_of  # noqa: E402
+from asp_dist.training.engines import supports as packable  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
-from asp_dist.training.packed import PACKED, pack_key, packed_module  # noqa: E402
-from asp_dist.training.packed import supports as packable  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
 METHODS = ("pc", "osp", "asp")
+PACKED = sorted(d for d in DOMAINS if any(t.packs for t in get_domain(d).trainers))  # domains with a packed trainer
 # Per-domain table: the grid whose cells are packed (default "paper-<domain>") and the updates per
 # timing block (default DEFAULT_UPDATES; about 2-3 s of single-path work per block at K = 21).
 GRID_SPACE: dict[str, str] = {}
@@ -121,11 +122,11 @@ def trial_size(domain: str) -> int:
 
 
 def packed_trainer(domain: str) -> type:
-    """The domain's packed trainer class: the one its run_pack is bound to (partial(driver.run_pack, Trainer))."""
-    bound = getattr(packed_module(domain), "run_pack", None)
-    if not isinstance(bound, functools.partial) or not isinstance(bound.args[0], type):
-        raise SystemExit(f"{domain}: run_pack is not driver.run_pack bound to a trainer class")
-    return bound.args[0]
+    """The domain's packed trainer class (the one that packs its grid's cells)."""
+    trainer = packed_trainer_of(_grid(domain)[0])
+    if trainer is None:
+        raise SystemExit(f"{domain}: no packed trainer")
+    return trainer
 
 
 def cell_data(specs: list[CellSpec]) -> list[tuple[dict, dict]]:
@@ -158,14 +159,13 @@ def fresh_agents(spec: CellSpec):
 
 def single_trainer(spec: CellSpec, data: tuple[dict, dict]):
     """The cell's trainer as run_cell builds it (today's single-cell path, whichever trainer that is)."""
-    return cell.choose_trainer(spec, get_domain(spec.domain), fresh_agents(spec), data[0], data[1],
-                               method_weights(spec))
+    return lone_trainer(spec).build([spec], [data[0]], [data[1]], [fresh_agents(spec)])
 
 
 def build_pack(trainer_class: type, specs: list[CellSpec], data: list[tuple[dict, dict]]):
-    """One pack of `specs`, members in the trainer's order (as run_pack builds it)."""
+    """One pack of `specs`, members in the trainer's order (as the cell pipeline builds it)."""
     order = trainer_class.member_order(specs)
-    return trainer_class([specs[i] for i in order], [data[i][0] for i in order], [data[i][1] for i in order],
+    return trainer_class.build([specs[i] for i in order], [data[i][0] for i in order], [data[i][1] for i in order],
                          [fresh_agents(specs[i]) for i in order])
 
 
@@ -271,7 +271,7 @@ def one_vae(updates: int, blocks: int) -> dict:
         weights, gen = method_weights(spec), torch.Generator().manual_seed(spec.seed_for("data"))
         paired = domain.paired(spec, base, spec.paired, gen) if spec.paired else {}
         unpaired = domain.unpaired(spec, base, spec.unpaired_size, gen) if weights.needs_adversary else {}
-        trainer = cell.choose_trainer(spec, domain, fresh_agents(spec), paired, unpaired, weights)
+        trainer = lone_trainer(spec).build([spec], [paired], [unpaired], [fresh_agents(spec)])
         timed(trainer.train_step, 10)
         if method == "asp":
             out["rss_asp_cell_mib"] = peak_rss_mib()
@@ -410,7 +410,7 @@ def summary(report: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--domains", nargs="*", default=list(PACKED), choices=list(PACKED),
-                    help="packed domains to benchmark (default: all of PACKED; none with a bare --domains)")
+                    help="packed domains to benchmark (default: all with a packed trainer; none with a bare --domains)")
     ap.add_argument("--K", nargs="+", type=int, default=[1, 8, 21, 64], dest="ks", help="pack sizes")
     ap.add_argument("--updates", type=int, help=f"updates per timing block (default per domain: {UPDATES}, "
                     f"else {DEFAULT_UPDATES}; VAE {VAE_UPDATES})")

@@ -4,8 +4,8 @@ and (optionally) whole cells at paper settings.
     python bench/bench_particles.py                      # base + per-update times (about a minute)
     python bench/bench_particles.py --cells pc,osp,asp   # also one full cell per method (minutes)
 
-Per-update time is given for the trainer that cells run (a one-member pack of asp_dist/training/packed/particles.py,
-run_cell's choose_trainer) and for the autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
+Per-update time is given for the trainer that cells run (a one-member pack of asp_dist/domains/particles/packed.py,
+run_cell's lone trainer) and for the autograd reference it is tested against; it is the median over blocks of --updates updates after a warm-up, with the
 paper's batch (8 envs), the full paired set (6) and the ASP discriminator where it applies.
 Peak memory is the process's maximum resident set size (ru_maxrss) after each phase.
 Load on a shared machine inflates every figure: the load average is printed with them.
@@ -28,14 +28,15 @@ from _common import cell_timing, peak_rss_mib  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402
-from asp_dist.training.cell import choose_trainer, run_cell  # noqa: E402
+from asp_dist.domains.particles.packed import PackedParticleTrainer  # noqa: E402
+from asp_dist.training.cell import run_cell  # noqa: E402
+from asp_dist.training.engines import lone_trainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
-from asp_dist.training.packed import PackOfOne  # noqa: E402
 from asp_dist.training.trainer import Trainer  # noqa: E402
 
 
 def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) -> list[float]:
-    """engine: 'pack' (the one-member pack choose_trainer picks: what cells run) or 'autograd' (the reference)."""
+    """engine: 'pack' (the one-member pack run_cell trains on: engines.lone_trainer) or 'autograd' (the reference)."""
     domain = get_domain(spec.domain)
     data_gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, data_gen)
@@ -43,8 +44,8 @@ def per_update_ms(spec: CellSpec, base, updates: int, blocks: int, engine: str) 
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen) if weights.needs_adversary else {}
     agents = domain.new_agents(spec, 1)
     if engine == "pack":  # what run_cell runs: a pack of one wherever the packed trainer implements the knobs
-        trainer = choose_trainer(spec, domain, agents, paired, unpaired, weights)
-        assert isinstance(trainer, PackOfOne), f"{spec.cell_id}: the packed trainer does not implement these knobs"
+        assert lone_trainer(spec) is PackedParticleTrainer, f"{spec.cell_id}: the packed trainer does not implement these knobs"
+        trainer = PackedParticleTrainer.build([spec], [paired], [unpaired], [agents])
     else:
         trainer = Trainer(spec, domain, agents, paired, unpaired, weights)
     for _ in range(100):  # warm-up

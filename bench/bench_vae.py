@@ -25,7 +25,8 @@ from asp_dist.data.mnist import PIXELS, load_mnist  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import BaseModel  # noqa: E402
-from asp_dist.training.cell import choose_trainer, run_cell  # noqa: E402
+from asp_dist.training.cell import run_cell  # noqa: E402
+from asp_dist.training.engines import lone_trainer  # noqa: E402
 from asp_dist.training.methods import method_weights  # noqa: E402
 
 
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         paired = domain.paired(spec, base.agents, spec.paired, data_gen)
         unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, data_gen)
         # the trainer run_cell picks (the VAE's one-pass update; bench/bench_packing.py times the reference beside it)
-        trainer = choose_trainer(spec, domain, domain.new_agents(spec, 1), paired, unpaired, method_weights(spec))
+        trainer = lone_trainer(spec).build([spec], [paired], [unpaired], [domain.new_agents(spec, 1)])
         for _ in range(10):
             trainer.train_step()
         t, c = time.perf_counter(), time.process_time()

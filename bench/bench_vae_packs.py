@@ -23,7 +23,7 @@ import torch
 from bench_packing import build_pack, cell_data, single_trainer  # the same setup as the grid-order benchmark
 
 from asp_dist.spec import CellSpec
-from asp_dist.training.packed.vae import PackedVAETrainer
+from asp_dist.domains.vae.packed import PackedVAETrainer
 
 
 def warm_trainers(method: str, paired: int, k: int) -> tuple[list, PackedVAETrainer]:

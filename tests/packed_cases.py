@@ -1,29 +1,32 @@
 """What the packed-training tests need to know of a domain: a small spec, packs to check member by
 member, and where a member's self-play state lives (in a pack and in the reference Trainer).
 
-tests/test_packed.py runs every check for every domain registered in asp_dist.training.packed.PACKED:
-a domain registered there is tested without a line here (with GENERIC_PACKS and its tiny budget),
+tests/test_packed.py runs every check for every registered domain with a packed trainer (one whose
+class says `packs`, asp_dist.training.engines): such a domain is tested without a line here (with GENERIC_PACKS and its tiny budget),
 and a case below adds the packs and state that make its checks sharper. Domain-specific checks are
 in tests/test_packed_<domain>.py.
 """
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
-from functools import partial
+from types import ModuleType
 from typing import Any, Callable
 
 import torch
 from budgets import TINY
 
+from asp_dist.domains import DOMAINS as REGISTRY
 from asp_dist.domains import get_domain
 from asp_dist.domains.levers import AGENTS
 from asp_dist.spec import CellSpec
+from asp_dist.training.engines import lone_trainer
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import PACKED, driver, packed_module
 from asp_dist.training.trainer import Trainer
 
-DOMAINS = sorted(PACKED)
+# Every registered domain with a packed trainer (the plugin's included, should it bring one).
+DOMAINS = sorted(name for name in REGISTRY if any(t.packs for t in get_domain(name).trainers))
 
 # A pack of members that differ in everything any member may differ in (methods, paired counts,
 # trials, data sizes, learning rates, λ schedules, adversarial losses).
@@ -65,11 +68,19 @@ def disc_params(member) -> torch.Tensor:
 
 
 def trainer_class(domain: str) -> type:
-    """The domain's packed trainer: what its module's run_pack binds driver.run_pack to."""
-    run_pack = packed_module(domain).run_pack
-    assert isinstance(run_pack, partial) and run_pack.func is driver.run_pack, \
-        f"{domain}: run_pack must be partial(driver.run_pack, Trainer) (asp_dist.training.packed)"
-    return run_pack.args[0]
+    """The domain's packed trainer: the first of its trainers that packs."""
+    return next(t for t in get_domain(domain).trainers if t.packs)
+
+
+def packed_module(domain: str) -> ModuleType:
+    """The module of the domain's packed trainer (its CHUNK, SHARED, ... constants)."""
+    return sys.modules[trainer_class(domain).__module__]
+
+
+def lone(spec: CellSpec, agents: torch.nn.Module, paired, unpaired):
+    """The trainer run_cell trains `spec` on (asp_dist.training.engines.lone_trainer), built as the cell
+    pipeline builds it: a one-member pack, the VAE's one-pass trainer or the reference Trainer."""
+    return lone_trainer(spec).build([spec.resolved()], [paired], [unpaired], [agents])
 
 
 # ---- tolerances: float32 rounding ----------------------------------------------------------------
@@ -351,4 +362,5 @@ CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE)}
 
 def case_for(domain: str) -> PackCase:
     """The domain's case; a registered domain without one gets the generic packs at its tiny budget."""
-    return CASES.get(domain) or PackCase(domain, small={**TINY[domain], "train_steps": 8})
+    small = TINY[domain] if domain in TINY else get_domain(domain).smoke  # a plugin's: its own smoke values
+    return CASES.get(domain) or PackCase(domain, small={**small, "train_steps": 8})

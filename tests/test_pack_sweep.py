@@ -1,5 +1,5 @@
 """Packed sweeps (`asp-dist sweep SPACE --pack trial|method`, asp_dist/sweep/packing.py and
-tune.train_pack): cells grouped into packs deterministically from the grid, one Tune trial per pack,
+sweep/trial.py): cells grouped into packs deterministically from the grid, one Tune trial per pack,
 rows one Parquet file per cell with the pinned schema (and a `pack` column), resume per cell.
 
 Fast tests (no Ray): the packs as a function of the grid; the flags and the packing kept in the
@@ -7,7 +7,7 @@ manifest; bad flags are one line, exit 2, nothing written; rows written before t
 existed still read; the pack trainable outside Ray (tune.report faked, as test_sweep_lifecycle does)
 gives run_pack's rows, records a member whose base is rejected as that member's failure, continues a
 pack from its checkpoint and writes only the members without a row; the same on S3 (moto); every
-domain registered in PACKED keeps the registry's contract and runs and restores a tiny pack.
+domain with a packed trainer keeps the registry's contract and runs and restores a tiny pack.
 
 Slow tests (Ray, CLI subprocesses, each on its own Ray temp dir): a mixed particle + signaling space
 swept with --pack trial and without; a packed sweep whose driver is SIGKILLed while a pack is
@@ -31,6 +31,8 @@ import pyarrow.parquet as pq
 import pytest
 from budgets import TINY, tiny_spec
 from harness import clean, cli, env, kill_group, s3_env, start_moto, stop_now
+from packed_cases import DOMAINS as PACKED_DOMAINS
+from packed_cases import trainer_class
 
 from asp_dist.cli import main
 from asp_dist.errors import SweepError
@@ -41,7 +43,7 @@ from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import get_base, rejected_path
 from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing
 from asp_dist.sweep.spaces import expand
-from asp_dist.training.packed import PACKED, pack_key, packed_module, run_pack, supports
+from asp_dist.training.engines import pack_key, run_pack, supports
 from asp_dist.training.row import comparable
 from asp_dist.training.row import schema as row_schema
 
@@ -135,13 +137,13 @@ def test_packs_are_a_deterministic_function_of_the_grid(tmp_path):
 
 
 def test_a_packed_trainer_kept_out_of_sweeps_leaves_its_cells_single(monkeypatch):
-    """The VAE's packed trainer is slower than its single-cell path on CPU (IN_SWEEPS = False): --pack
+    """The VAE's packed trainer is slower than its single-cell path on CPU (in_sweeps = False): --pack
     leaves VAE cells single, so the packs of existing sweeps do not change with its registration."""
     specs = [tiny_spec("vae", method=m, paired=2, trial=t).resolved() for m in ("pc", "osp", "asp") for t in (0, 1)]
     assert all(supports(s) for s in specs)
     for mode in ("trial", "method"):
         assert all(u.pack_id is None for u in make_units(specs, Packing(mode, 21)))
-    monkeypatch.setattr(packed_module("vae"), "IN_SWEEPS", True)
+    monkeypatch.setattr(trainer_class("vae"), "in_sweeps", True)
     assert [len(u.specs) for u in make_units(specs, Packing("trial", 21))] == [3, 3]
 
 
@@ -250,6 +252,7 @@ class FakeTune:
 
 @pytest.fixture
 def trainable(monkeypatch, tmp_path):
+    from asp_dist.sweep import trial
     from asp_dist.sweep import tune as sweep_tune
 
     fake = FakeTune(tmp_path / "kept")
@@ -261,7 +264,7 @@ def trainable(monkeypatch, tmp_path):
 
     monkeypatch.setattr(sweep_tune.tune, "report", fake.report)
     monkeypatch.setattr(sweep_tune.tune, "get_checkpoint", fake.get_checkpoint)
-    monkeypatch.setattr(sweep_tune.ray, "get_runtime_context", RuntimeContext)
+    monkeypatch.setattr(trial.ray, "get_runtime_context", RuntimeContext)
     system_tmp = tmp_path / "system-tmp"
     system_tmp.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
@@ -318,18 +321,19 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
     assert fake.reports == [{"cell_done": 1, "skipped": 1}]
 
 
-@pytest.mark.parametrize("domain", sorted(PACKED))
+@pytest.mark.parametrize("domain", PACKED_DOMAINS)
 def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path,
                                                                                        monkeypatch):
-    """The registry's contract, for every domain in PACKED: supports / pack_key / run_pack with the
-    checkpoint arguments; a tiny pack of the domain (one cell per method) trained by the sweep's
+    """The registry's contract, for every domain with a packed trainer: its capabilities as attributes
+    (asp_dist.training.engines); a tiny pack of the domain (one cell per method) trained by the sweep's
     trainable gives run_pack's rows, and continued from a mid-run checkpoint gives them again
-    (also for a trainer kept out of sweeps by IN_SWEEPS = False: its packs must work when asked for)."""
-    module = packed_module(domain)
-    monkeypatch.setattr(module, "IN_SWEEPS", True, raising=False)
-    assert all(callable(getattr(module, name, None)) for name in ("supports", "pack_key", "run_pack"))
-    params = inspect.signature(module.run_pack).parameters
-    assert {"bases", "curves", "progress", "checkpoint", "restore", "checkpoint_every_s"} <= set(params)
+    (also for a trainer kept out of sweeps by in_sweeps = False: its packs must work when asked for)."""
+    trainer = trainer_class(domain)
+    monkeypatch.setattr(trainer, "in_sweeps", True)
+    assert trainer.packs and isinstance(trainer.lone, bool) and trainer.engine == trainer.__name__
+    assert all(callable(getattr(trainer, name, None)) for name in ("supports", "pack_key", "build", "member_order"))
+    params = inspect.signature(trainer.build).parameters
+    assert list(params) == ["specs", "paired", "unpaired", "agents"]
     sweep_tune, fake = trainable
     specs = [tiny_spec(domain, method=m, paired=2, trial=0).resolved() for m in ("pc", "osp", "asp")]
     assert all(supports(s) for s in specs) and len({pack_key(s) for s in specs}) == 1

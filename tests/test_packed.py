@@ -1,4 +1,4 @@
-"""Packed training (asp_dist/training/packed/), every check for every domain registered in PACKED:
+"""Packed training (asp_dist.training.engines, stacked, pipeline), every check for every domain with a packed trainer:
 each pack member against the reference Trainer (autograd), update by update; whole tiny cells
 against run_cell (whatever trains a single cell of the domain); pack-mates; a diverging member;
 checkpoints of the trainer and of a whole pack. A newly registered domain is tested here without
@@ -15,15 +15,14 @@ import torch
 from budgets import TINY, tiny_spec
 from checkpoints import checkpoint_sink
 from packed_cases import (DOMAINS, AdamDrift, adam_sqrt_v, case_for, disc_grad_tol, disc_params, flat_grads,
-                          flat_params, float32_tol, stacked_sqrt_v)
+                          flat_params, float32_tol, lone, packed_module, stacked_sqrt_v, trainer_class)
 
 from asp_dist.domains import get_domain
 from asp_dist.training.bases import train_accepted_base
-from asp_dist.training.cell import choose_trainer, run_cell
-from asp_dist.training.fast import fast_trainer
+from asp_dist.training.cell import run_cell
+from asp_dist.training.engines import lone_trainer, pack_key, run_pack, supports
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import PackOfOne, pack_key, packed_module, run_pack, supports
-from asp_dist.training.packed.stacked import StackedParams
+from asp_dist.training.stacked import StackedParams
 from asp_dist.training.row import comparable
 from asp_dist.training.trainer import Trainer
 
@@ -85,15 +84,14 @@ def test_curve_points_equal_the_single_cell_paths(domain):
     data = [case.member_data(s) for s in specs]
     d = get_domain(domain)
     pack = case.make_pack(specs, data)
-    singles = [choose_trainer(s, d, d.new_agents(s, s.seed_for("init")), p, u, method_weights(s))
-               for s, (p, u) in zip(specs, data)]
+    singles = [lone(s, d.new_agents(s, s.seed_for("init")), p, u) for s, (p, u) in zip(specs, data)]
     for _ in range(60):
         pack.train_step()
         for single in singles:
             single.train_step()
     for i, single in enumerate(singles):
-        assert len(pack.members[i].curve) == len(single.curve) == 60
-        for p, q in zip(pack.members[i].curve, single.curve):
+        assert len(pack.members[i].curve) == len(single.members[0].curve) == 60
+        for p, q in zip(pack.members[i].curve, single.members[0].curve):
             assert p.keys() == q.keys()
             assert p == pytest.approx(q, rel=1e-4, abs=1e-6)
 
@@ -117,8 +115,7 @@ def tiny_run(request):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(packed_module(domain), "CHUNK", TINY_CHUNK)
-        results = packed_module(domain).run_pack(specs, bases=bases, curves=True, checkpoint=keep,
-                                                 checkpoint_every_steps=EVERY)
+        results = run_pack(specs, bases=bases, curves=True, checkpoint=keep, checkpoint_every_steps=EVERY)
     return dict(domain=domain, specs=specs, bases=bases, results=results, states=states)
 
 
@@ -340,10 +337,10 @@ def test_restore_mid_pack_continues_bit_for_bit(domain, monkeypatch):
 # ---- the registry ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("domain", DOMAINS)
 def test_a_domain_packs_its_own_cells_only(domain):
-    module = packed_module(domain)
+    module, trainer = packed_module(domain), trainer_class(domain)
     s = tiny_spec(domain)
-    assert supports(s) and module.supports(s)
-    assert pack_key(s) == (domain, *module.pack_key(s))
+    assert supports(s) and module.supports(s) and trainer.supports(s)
+    assert pack_key(s) == (domain, *module.pack_key(s)) == (domain, *trainer.pack_key(s))
     assert pack_key(s) == pack_key(tiny_spec(domain, method="asp", paired=3, trial=4, lr=0.1))
     for other in DOMAINS + ["signaling"]:
         if other != domain:
@@ -351,18 +348,25 @@ def test_a_domain_packs_its_own_cells_only(domain):
     assert not supports(tiny_spec("signaling"))
 
 
+# What run_cell trains a lone cell on, per built-in domain (a plugin's packed trainer: the rule only).
+LONE = {"particles": "PackedParticleTrainer", "levers": "PackedLeverTrainer", "vae": "OnePassVAETrainer"}
+
+
 @pytest.mark.parametrize("domain", DOMAINS)
-def test_single_cells_train_as_a_pack_of_one_where_the_domain_says_so(domain):
-    """run_cell's trainer (choose_trainer): a one-member pack where the domain binds `single_cell`,
-    else the domain's fast trainer where it has one (the VAE's one-pass trainer), else the reference
-    Trainer (the other checks here compare packs with whichever it is)."""
+def test_a_lone_cell_trains_on_the_first_lone_trainer_that_supports_it(domain):
+    """run_cell's trainer (engines.lone_trainer): a one-member pack where the packed trainer says `lone`,
+    else the domain's next lone trainer (the VAE's one-pass trainer), else the reference Trainer (the
+    other checks here compare packs with whichever it is); built as the pipeline builds it, one member."""
     s = tiny_spec(domain, method="asp", paired=2).resolved()
     d, data = get_domain(domain), case_for(domain).member_data(s)
-    trainer = choose_trainer(s, d, d.new_agents(s, 0), data[0], data[1], method_weights(s))
-    if getattr(packed_module(domain), "single_cell", None) is not None:
-        assert isinstance(trainer, PackOfOne) and trainer.engine == f"pack-of-one/{type(trainer.pack).__name__}"
-    else:
-        assert type(trainer) is (fast_trainer(s) or Trainer) and trainer.engine == "autograd"
+    chosen = lone_trainer(s)
+    assert chosen.lone and chosen.supports(s)
+    assert chosen.__name__ == LONE.get(domain, chosen.__name__)
+    assert chosen is next(t for t in (*d.trainers, Trainer) if t.lone and t.supports(s))
+    trainer = lone(s, d.new_agents(s, 0), *data)
+    assert type(trainer) is chosen and len(trainer.members) == 1 and trainer.engine == chosen.engine
+    if not trainer_class(domain).lone:
+        assert chosen is not trainer_class(domain)
 
 
 def test_stacked_adam_matches_torch_adam():

@@ -1,4 +1,4 @@
-"""The lever world's packed trainer (asp_dist/training/packed/levers.py), what is particular to it:
+"""The lever world's packed trainer (asp_dist/domains/levers/packed.py), what is particular to it:
 what can share a pack, and ε-greedy exploration compared in float32 as dqn_step compares it. Checks
 of every packed trainer (packs against the reference Trainer member by member, whole cells against
 run_cell, pack-mates, divergence, checkpoints of the trainer and of a whole pack) are in
@@ -10,14 +10,11 @@ from __future__ import annotations
 import pytest
 import torch
 from budgets import tiny_spec
-from packed_cases import LEVERS, AdamDrift, adam_sqrt_v, flat_grads, flat_params, float32_tol
+from packed_cases import LEVERS, AdamDrift, adam_sqrt_v, flat_grads, flat_params, float32_tol, lone
 
-import asp_dist.training.packed.levers as packed_mod
+import asp_dist.domains.levers.packed as packed_mod
 from asp_dist.domains import get_domain
-from asp_dist.training.cell import choose_trainer
-from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import PackOfOne
-from asp_dist.training.packed.levers import pack_key, supports
+from asp_dist.domains.levers.packed import PackedLeverTrainer, pack_key, supports
 
 
 def test_what_can_share_a_pack():
@@ -57,10 +54,9 @@ def test_single_lever_cell_is_a_pack_of_one_equal_to_the_reference(changes):
     spec = LEVERS.spec(**changes)
     data, domain = LEVERS.member_data(spec), get_domain("levers")
     ref = LEVERS.make_reference(spec, data)
-    single = choose_trainer(spec, domain, domain.new_agents(spec, spec.seed_for("init")), data[0], data[1],
-                            method_weights(spec))
-    assert isinstance(single, PackOfOne) and single.engine == "pack-of-one/PackedLeverTrainer"
-    pack, terms = single.pack, LEVERS.grad_terms(spec, ref.agents)
+    single = lone(spec, domain.new_agents(spec, spec.seed_for("init")), data[0], data[1])
+    assert type(single) is PackedLeverTrainer and single.engine == "PackedLeverTrainer"
+    pack, terms = single, LEVERS.grad_terms(spec, ref.agents)
     drift = AdamDrift(spec.lr)
     for step in range(spec.train_steps):
         ref.train_step()
@@ -70,10 +66,10 @@ def test_single_lever_cell_is_a_pack_of_one_equal_to_the_reference(changes):
         assert torch.allclose(got, expected, rtol=0, atol=float32_tol(expected, terms)), f"update {step}: gradient"
         theta = flat_params(ref.agents)
         assert drift.add(*adam_sqrt_v(ref.agents, ref.opt), theta, err=(got - expected).abs()).close(
-            flat_params(single.agents), theta), f"update {step}"
+            flat_params(single.members[0].agents), theta), f"update {step}"
     assert single.step == ref.step == spec.train_steps
-    assert torch.equal(ref.gen.get_state(), single.member.gen.get_state()), "the same random draws were made"
-    expected, got = ref.loss_columns(), single.loss_columns()
+    assert torch.equal(ref.gen.get_state(), single.members[0].gen.get_state()), "the same random draws were made"
+    expected, got = ref.loss_columns(), single.loss_columns(0)
     assert expected.keys() == got.keys()
     for key, value in expected.items():
         assert (got[key] is None) == (value is None), key

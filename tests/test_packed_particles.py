@@ -1,5 +1,5 @@
-"""The particle world's packed trainer (asp_dist/training/packed/particles.py), what is particular to it:
-a single particle cell trains as a one-member pack (run_cell's choose_trainer), and that pack's
+"""The particle world's packed trainer (asp_dist/domains/particles/packed.py), what is particular to it:
+a single particle cell trains as a one-member pack (run_cell's lone trainer), and that pack's
 hand-derived update against the autograd reference, for every method and both adversarial losses,
 rollouts longer than one step, deeper discriminators, several discriminator steps and λ1 schedules;
 what can share a pack. Checks of every packed trainer (packs of any size against the reference,
@@ -13,15 +13,16 @@ import pytest
 import torch
 from budgets import tiny_spec
 from checkpoints import checkpoint_sink
-from packed_cases import PARTICLES, AdamDrift, adam_sqrt_v, disc_grad_tol, flat_grads, flat_params, float32_tol
+from packed_cases import PARTICLES, AdamDrift, adam_sqrt_v, disc_grad_tol, flat_grads, flat_params, float32_tol, lone
 
 from asp_dist.domains import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import train_accepted_base
-from asp_dist.training.cell import checkpoint_engine, choose_trainer, run_cell
+from asp_dist.domains.particles.packed import PackedParticleTrainer
+from asp_dist.training.cell import CellDiverged, run_cell
+from asp_dist.training.engines import lone_trainer, pack_key, supports
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import PackOfOne, pack_key, supports
-from asp_dist.training.packed.single import CellDiverged
+from asp_dist.training.pipeline import upgrade_checkpoint
 from asp_dist.training.row import comparable
 from asp_dist.training.trainer import Trainer
 
@@ -31,7 +32,7 @@ SMALL = dict(domain="particles", particles_hidden=16, particles_message_dim=12, 
 DOMAIN = get_domain("particles")
 
 
-def trainer_pair(**changes) -> tuple[Trainer, PackOfOne]:
+def trainer_pair(**changes) -> tuple[Trainer, PackedParticleTrainer]:
     """The reference and run_cell's trainer (a pack of one) from the same spec, data, initial weights and RNG."""
     spec = CellSpec(**{**SMALL, **changes}).resolved()
     base = DOMAIN.new_agents(spec, 99)
@@ -40,8 +41,8 @@ def trainer_pair(**changes) -> tuple[Trainer, PackOfOne]:
     weights = method_weights(spec)
     unpaired = DOMAIN.unpaired(spec, base, spec.unpaired_size, gen) if weights.needs_adversary else {}
     ref = Trainer(spec, DOMAIN, DOMAIN.new_agents(spec, 1), paired, unpaired, weights)
-    single = choose_trainer(spec, DOMAIN, DOMAIN.new_agents(spec, 1), paired, unpaired, weights)
-    assert isinstance(single, PackOfOne)
+    single = lone(spec, DOMAIN.new_agents(spec, 1), paired, unpaired)
+    assert type(single) is PackedParticleTrainer and len(single.members) == 1
     return ref, single
 
 
@@ -60,7 +61,7 @@ def trainer_pair(**changes) -> tuple[Trainer, PackOfOne]:
 ], ids=lambda c: "-".join(f"{k}={v}" for k, v in c.items()))
 def test_single_cell_update_equals_autograd(changes):
     ref, single = trainer_pair(**changes)
-    pack, member, s = single.pack, single.member, ref.spec
+    pack, member, s = single, single.members[0], ref.spec
     terms = PARTICLES.grad_terms(s, ref.agents)
     drift, disc_drift = AdamDrift(s.lr), AdamDrift(s.disc_lr)
     for step in range(s.train_steps):
@@ -75,7 +76,7 @@ def test_single_cell_update_equals_autograd(changes):
         # buffer) and the discriminator.
         theta = flat_params(ref.agents)
         assert drift.add(*adam_sqrt_v(ref.agents, ref.opt), theta, err=(got - expected).abs()).close(
-            flat_params(single.agents), theta), f"step {step}: parameters"
+            flat_params(member.agents), theta), f"step {step}: parameters"
         if ref.adversaries is not None:
             phi = flat_params(ref.adversaries)
             sqrt_v, t = adam_sqrt_v(ref.adversaries, *ref.adversaries.optims.values())
@@ -92,12 +93,13 @@ def test_single_cell_loss_diagnostics_and_curve_equal_the_reference():
     for _ in range(10):
         ref.train_step()
         single.train_step()
-    expected, got = ref.loss_columns(), single.loss_columns()
+    expected, got = ref.loss_columns(), single.loss_columns(0)
     assert expected.keys() == got.keys()
     for name in expected:
         assert got[name] == pytest.approx(expected[name], rel=1e-4, abs=1e-6), name
-    assert len(single.curve) == len(ref.curve) == 10
-    for p, q in zip(single.curve, ref.curve):
+    curve = single.members[0].curve
+    assert len(curve) == len(ref.curve) == 10
+    for p, q in zip(curve, ref.curve):
         assert p.keys() == q.keys() and p == pytest.approx(q, rel=1e-4, abs=1e-6)
 
 
@@ -107,8 +109,7 @@ def test_what_trains_as_a_pack_and_what_on_the_reference():
     for knobs in (dict(particles_replay_size=100), dict(particles_paired_listener=False)):
         s = spec(method="osp", paired=2, **knobs)
         assert not supports(s)  # not in a pack, and not as a pack of one: the reference Trainer's
-        trainer = choose_trainer(s, DOMAIN, DOMAIN.new_agents(s, 0), {}, {}, method_weights(s))
-        assert type(trainer) is Trainer
+        assert lone_trainer(s) is Trainer and type(lone(s, DOMAIN.new_agents(s, 0), {}, {})) is Trainer
     assert pack_key(spec(method="pc", paired=1, trial=4, lr=0.1)) == pack_key(spec(method="asp", paired=6))
     no_data = [({}, {})] * 2  # (refused before the data is read)
     with pytest.raises(ValueError, match="particles_hidden"):
@@ -118,17 +119,20 @@ def test_what_trains_as_a_pack_and_what_on_the_reference():
 
 
 def test_a_diverging_single_cell_fails():
-    """A pack freezes a diverging member and goes on; a cell alone has nothing to go on with: run_cell's
-    trainer raises (as the reference does, sampling from a non-finite policy)."""
+    """A pack freezes a diverging member and goes on; a cell alone has nothing to go on with: run_cell
+    raises CellDiverged (the sweep records it as the cell's failure, no retries), as the reference
+    raises sampling from a non-finite policy."""
     ref, single = trainer_pair(method="asp", paired=2, lr=1e30)
-    for trainer, message in ((ref, "probability tensor contains"), (single, "non-finite")):
-        with pytest.raises(RuntimeError, match=message):
-            for _ in range(4):
-                trainer.train_step()
-    assert single.member.failed and torch.isfinite(flat_params(single.agents)).all()
-    with pytest.raises(CellDiverged) as diverged:  # the sweep records it as the cell's failure, no retries
+    with pytest.raises(RuntimeError, match="probability tensor contains"):
+        for _ in range(4):
+            ref.train_step()
+    for _ in range(4):
         single.train_step()
-    assert "frozen" not in str(diverged.value)
+    member = single.members[0]
+    assert member.failed and "non-finite" in member.error and torch.isfinite(flat_params(member.agents)).all()
+    spec = tiny_spec("particles", method="asp", paired=2, lr=1e30)
+    with pytest.raises(CellDiverged, match="non-finite"):
+        run_cell(spec, base=train_accepted_base(spec))
 
 
 def test_a_checkpoint_of_another_engine_starts_the_cell_over():
@@ -142,13 +146,21 @@ def test_a_checkpoint_of_another_engine_starts_the_cell_over():
     row = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=15)
     states = [torch.load(io.BytesIO(b), weights_only=False) for b in saved]
     # (that the cell's own checkpoints restore bit for bit: tests/test_particles.py)
-    engine = "pack-of-one/PackedParticleTrainer"
-    assert [s["engine"] for s in states] == [engine] * 2 and checkpoint_engine(states[0]) == engine
+    assert [s["engine"] for s in states] == ["PackedParticleTrainer"] * 2
     # A version-1 checkpoint of the fused kernel: a Trainer-shaped state with FlatAdam's optimiser state.
-    fused = {"version": 1, "cell_id": states[0]["cell_id"], "timings": {"time_train_cpu_s": 99.0},
+    fused = {"version": 1, "cell_id": states[0]["cell_ids"][0], "timings": {"time_train_cpu_s": 99.0},
              "trainer": {"step": 15, "opt": {"steps": 15, "exp_avg": torch.zeros(3), "exp_avg_sq": torch.zeros(3)}}}
-    assert checkpoint_engine(fused) == "fused-particles"
-    assert checkpoint_engine({"version": 1, "trainer": {"opt": {"state": {}, "param_groups": []}}}) == "autograd"
+    assert upgrade_checkpoint(fused)["engine"] == "fused-particles"
+    old = {"version": 1, "trainer": {"opt": {"state": {}, "param_groups": []}}}
+    assert upgrade_checkpoint(old)["engine"] == "autograd"
+    # A version-2 checkpoint of a one-member pack (before cells and packs shared one format) still restores.
+    v2 = {"version": 2, "cell_id": states[0]["cell_ids"][0], "engine": "pack-of-one/PackedParticleTrainer",
+          "trainer": states[0]["trainer"], "timings": states[0]["timings"][0]}
+    up = upgrade_checkpoint(v2)
+    assert (up["version"], up["engine"], up["cell_ids"], up["timings"]) == (
+        states[0]["version"], "PackedParticleTrainer", states[0]["cell_ids"], states[0]["timings"])
+    resumed = run_cell(spec, base=base, restore=v2)
+    assert resumed["resumed_from_step"] == 15 and comparable(resumed) == comparable(row)
     over = run_cell(spec, base=base, restore=fused)
     assert over["resumed_from_step"] is None and over["time_train_cpu_s"] < 99.0
     assert comparable(over) == comparable(row)

@@ -1,6 +1,6 @@
-"""The VAE's packed trainer (asp_dist/training/packed/vae.py), what is particular to it: each member
+"""The VAE's packed trainer (asp_dist/domains/vae/packed.py), what is particular to it: each member
 against the single-cell path run_cell takes for a VAE cell (the one-pass trainer,
-asp_dist.training.fast.vae.OnePassVAETrainer) after one update and over a whole tiny training, for
+asp_dist.domains.vae.fast.OnePassVAETrainer) after one update and over a whole tiny training, for
 packs mixing methods and every per-member knob; a member beside other pack-mates (other shapes);
 what can share a pack. Checks of every packed trainer (packs against the reference Trainer member by
 member, whole cells against run_cell, pack-mates of one shape bit for bit, divergence, checkpoints)
@@ -15,11 +15,10 @@ from packed_cases import (VAE, AdamDrift, adam_sqrt_v, disc_grad_tol, disc_param
                           float32_tol, stacked_sqrt_v)
 
 from asp_dist.domains import get_domain
-from asp_dist.training.cell import choose_trainer
-from asp_dist.training.fast.vae import OnePassVAETrainer
+from asp_dist.domains.vae.fast import OnePassVAETrainer
+from asp_dist.domains.vae.packed import IMPLEMENTED, PackedVAETrainer, pack_key, supports
+from asp_dist.training.engines import lone_trainer, pack_trainer, sweep_packs
 from asp_dist.training.methods import method_weights
-from asp_dist.training.packed import packed_module
-from asp_dist.training.packed.vae import IMPLEMENTED, PackedVAETrainer, pack_key, supports
 
 DOMAIN = get_domain("vae")
 # Gradients and weights agree up to float32 rounding: packed_cases.float32_tol and AdamDrift.
@@ -219,10 +218,9 @@ def test_what_can_share_a_pack():
 
 
 def test_a_single_vae_cell_trains_on_the_one_pass_trainer():
-    """The packed trainer is for packs only: a lone VAE cell keeps run_cell's one-pass trainer."""
-    assert getattr(packed_module("vae"), "single_cell", None) is None
-    assert packed_module("vae").run_pack.args[0] is PackedVAETrainer
+    """The packed trainer is for packs only, and kept out of sweeps (measured slower: docs/performance.md):
+    a lone VAE cell keeps run_cell's one-pass trainer."""
     s = tiny_spec("vae", method="asp", paired=2).resolved()
-    p, u = VAE.member_data(s)
-    trainer = choose_trainer(s, DOMAIN, DOMAIN.new_agents(s, 0), p, u, method_weights(s))
-    assert type(trainer) is OnePassVAETrainer
+    assert not PackedVAETrainer.lone and not PackedVAETrainer.in_sweeps
+    assert pack_trainer(s) is PackedVAETrainer and not sweep_packs(s)
+    assert lone_trainer(s) is OnePassVAETrainer

@@ -222,7 +222,9 @@ def test_old_ray_sessions_are_pruned_but_never_one_in_use(tmp_path):
 # ---- the trainable: checkpoints inside the sweep, deterministic data errors --------------------------------
 @pytest.fixture
 def trainable(monkeypatch, tmp_path):
-    """train_cell outside Ray: tune.report records its calls (and what a checkpoint dir holds then)."""
+    """train_cell outside Ray: tune.report records its calls (and what a checkpoint dir holds then). The
+    config is a single cell's of older code ("spec", "cell_id"): a restored Tune experiment hands those."""
+    from asp_dist.sweep import trial
     from asp_dist.sweep import tune as sweep_tune
 
     reports = []
@@ -239,7 +241,7 @@ def trainable(monkeypatch, tmp_path):
 
     monkeypatch.setattr(sweep_tune.tune, "report", report)
     monkeypatch.setattr(sweep_tune.tune, "get_checkpoint", lambda: None)
-    monkeypatch.setattr(sweep_tune.ray, "get_runtime_context", RuntimeContext)
+    monkeypatch.setattr(trial.ray, "get_runtime_context", RuntimeContext)
     system_tmp = tmp_path / "system-tmp"
     system_tmp.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(system_tmp))
@@ -271,9 +273,11 @@ def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeyp
     def unreadable(*args, **kwargs):
         raise MNISTError("MNIST file /data/train-images.gz is unreadable (planted by the test)")
 
-    monkeypatch.setattr(sweep_tune, "run_cell", unreadable)
+    from asp_dist.sweep import trial
+
+    monkeypatch.setattr(trial, "run_unit", unreadable)
     sweep_tune.train_cell(config)  # returns: Tune sees a finished trial, not an error to retry
-    assert reports == [({"cell_done": 0, "cell_failed": 1}, None)]
+    assert reports == [({"cell_done": 0, "cells_written": 0, "cell_failed": 1}, None)]
     failed = store.failed_cells(sweep_dir)
     assert list(failed) == [spec.cell_id]
     assert "MNISTError: MNIST file /data/train-images.gz is unreadable" in failed[spec.cell_id]["error"]

@@ -174,13 +174,12 @@ def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
     """The fast trainer (self-play and paired rows in one batch per network) computes the
     reference update: gradients, weights (VAE and discriminator) and loss columns equal up to float
     rounding, the same draws. PC has nothing to merge: the reference update itself."""
-    from asp_dist.training.cell import choose_trainer
-    from asp_dist.training.fast.vae import OnePassVAETrainer
+    from asp_dist.domains.vae.fast import OnePassVAETrainer
+    from asp_dist.training.engines import lone_trainer
     from asp_dist.training.trainer import Trainer
 
     reference, fast = vae_trainers(domain, base, (Trainer, OnePassVAETrainer), **changes)
-    assert isinstance(choose_trainer(fast.spec, domain, fast.agents, fast.paired, fast.unpaired, fast.weights),
-                      OnePassVAETrainer)
+    assert lone_trainer(fast.spec) is OnePassVAETrainer
     grads = []
     for trainer in (reference, fast):
         trainer.train_step()  # the first update's gradients, before Adam has amplified any rounding
@@ -206,7 +205,7 @@ def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
 def test_a_restored_vae_trainer_keeps_fused_adam(domain, base):
     """A checkpoint from before the VAE used fused Adam (its param_groups say fused=None) must not
     switch today's optimiser options off for the rest of the cell."""
-    from asp_dist.training.fast.vae import OnePassVAETrainer
+    from asp_dist.domains.vae.fast import OnePassVAETrainer
 
     (trainer,) = vae_trainers(domain, base, (OnePassVAETrainer,), method="asp")
     trainer.train_step()

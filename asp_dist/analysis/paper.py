@@ -42,8 +42,12 @@ def paper_threshold(domain: str, metric: str) -> tuple[float, str] | None:
 
 
 def paper_claim(domain: str) -> str | None:
+    """The report's line on what the paper found for `domain` (or, for a domain the paper does not
+    study, the question the domain asks); None when the domain says nothing."""
     facts = paper_facts(domain)
-    return facts.claim if facts is not None else None
+    if facts is None or not facts.claim:
+        return None
+    return f"the paper reports: {facts.claim}" if facts.in_paper else f"not in the paper; the question: {facts.claim}"
 
 
 def metric_label(domain: str, metric: str) -> str:

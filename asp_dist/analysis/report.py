@@ -261,7 +261,8 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                  "Nemenyi post-hoc are both below α (the paper's procedure); the Wilcoxon signed-rank test with Holm's "
                  "correction is shown as a second view. With two methods, the Wilcoxon test decides. Δ = median paired "
                  "difference ASP − other in metric units; a–t–b = blocks where ASP is better – tied – worse."))
-    claims = [f"- {d}: the paper reports: {claim}." for d in sorted(result.layouts) if (claim := paper_claim(d))]
+    claims = [f"- {d}: {claim}" + ("" if claim.endswith((".", "?", "!")) else ".")
+              for d in sorted(result.layouts) if (claim := paper_claim(d))]
     if claims:
         doc.add(Text("For comparison, the paper's findings:"), Text("\n".join(claims)))
     trend = t.get("knob_trend", pd.DataFrame())

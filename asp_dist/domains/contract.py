@@ -18,24 +18,37 @@ module too keeps torch to annotations and to the bodies of the functions that us
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from asp_dist.errors import SpecError
 from asp_dist.knobs import Knob
 
-if TYPE_CHECKING:  # a spec is resolved against the domains, so spec.py imports this package
+if TYPE_CHECKING:
     import torch
     from torch import nn
-
-    from asp_dist.spec import CellSpec
 
 ProgressFn = Callable[[str, int, int, dict], None]
 """progress(phase, done, total, info): called now and then by long loops."""
 
 Tensors = dict[str, "torch.Tensor"]
+
+
+class CellSpec(Protocol):
+    """A resolved cell spec as a domain reads it: asp_dist.spec.CellSpec, every common knob and every
+    registered domain's knob by attribute. Described here rather than imported: spec.py builds CellSpec
+    from the registered domains' knobs, so the contract stays below it, with no import cycle, not even
+    through annotations (tests/test_architecture.py). A domain's own modules import the real one."""
+
+    domain: str
+    method: str
+    paired: int
+    trial: int
+
+    def __getattr__(self, name: str) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -50,10 +63,11 @@ class PaperFacts:
     from here so that no stage keeps its own per-domain table."""
 
     metric_label: str  # what eval_mixed measures, with its unit (axis label)
-    claim: str  # the paper's finding for this domain, one sentence
+    claim: str  # the paper's finding for this domain, one sentence (in_paper False: the question it asks)
     test_paired: tuple[int, int] | None = None  # paired counts of the paper's Friedman test (None: all)
     threshold: tuple[float, str] | None = None  # data-efficiency threshold of eval_mixed, and where it comes from
     knob_labels: dict[str, str] = field(default_factory=dict)  # axis labels of this domain's swept knobs
+    in_paper: bool = True  # False for a domain the paper does not study (a plugin's): `claim` is then its question
 
 
 @dataclass
@@ -118,6 +132,20 @@ class Domain(ABC):
         import the card's constants (POOL, AGENTS) without an import cycle. Not cached on the instance:
         Python's module cache makes the second call a dictionary lookup, and a domain stays picklable."""
         return importlib.import_module(f"{type(self).__module__}.game")
+
+    @property
+    def trainers(self) -> tuple[type, ...]:
+        """This domain's own trainers, fastest first (asp_dist.training.engines: classes with their
+        capabilities as attributes; the reference Trainer, which trains any cell alone, follows them):
+        ``TRAINERS`` of the module ``trainers`` of the card's package, imported on first use as `game` is,
+        or () where the package has none. A domain written as one module overrides this."""
+        name = f"{type(self).__module__}.trainers"
+        try:
+            if importlib.util.find_spec(name) is None:
+                return ()
+        except ModuleNotFoundError:  # the card's module is not a package
+            return ()
+        return tuple(importlib.import_module(name).TRAINERS)
 
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""

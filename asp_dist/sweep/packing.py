@@ -1,5 +1,5 @@
 """How a sweep groups its cells into the units a Tune trial runs: one cell, or a pack of cells
-trained together as one batched model (asp_dist.training.packed).
+trained together as one batched model (asp_dist.training.engines).
 
     --pack cell     one cell per Tune trial (the default)
     --pack trial    the packable cells of one (domain, root seed, trial) that share a pack_key
@@ -16,7 +16,7 @@ stored in the sweep's manifest when the sweep starts and cannot change afterward
 
 Cells that cannot be packed (a domain without a packed trainer, knob values its packed trainer
 does not implement, a packed trainer kept out of sweeps because it is slower than the single-cell
-path: the VAE's, asp_dist.training.packed.sweep_packs) and groups of a single cell run one cell per
+path: the VAE's, asp_dist.training.engines.sweep_packs) and groups of a single cell run one cell per
 trial, as without --pack.
 No Ray import.
 """
@@ -130,7 +130,7 @@ class Unit:
 
 def _group(spec: CellSpec, mode: str) -> tuple[tuple, str]:
     """The group a packable cell belongs to under `mode` and the group's readable label."""
-    from asp_dist.training.packed import pack_key
+    from asp_dist.training.engines import pack_key
 
     key = pack_key(spec)
     if mode == "trial":
@@ -148,7 +148,7 @@ def make_units(specs: Sequence[CellSpec], packing: Packing) -> list[Unit]:
     specs = [s.resolved() for s in specs]
     if not packing.packed:
         return [Unit((s,)) for s in specs]
-    from asp_dist.training.packed import sweep_packs
+    from asp_dist.training.engines import sweep_packs
 
     groups: dict[tuple, tuple[str, list[CellSpec]]] = {}
     first: dict[str, int] = {s.cell_id: i for i, s in enumerate(specs)}

@@ -11,11 +11,12 @@ Flow of ``run_sweep`` / ``resume_sweep``:
    1 CPU each, ``reuse_actors=True``, at most ``workers`` at once. If the previous run of this
    sweep was interrupted, its Tune experiment is restored (``Tuner.restore``) so running cells
    continue from their last checkpoint (``tune.get_checkpoint``);
-5. each trial gets its base from the shared cache, runs ``run_cell`` (checkpointing through
-   ``tune.report(..., checkpoint=...)``) and writes its row through ``asp_dist.results.store``.
+5. each trial (asp_dist.sweep.trial) gets its bases from the shared cache, trains its unit through the one
+   cell pipeline (checkpointing through ``tune.report(..., checkpoint=...)``) and writes its rows through
+   ``asp_dist.results.store``.
 
 With ``--pack trial|method`` (asp_dist.sweep.packing) a trial may instead train a *pack*: cells of one
-domain trained as one batched model (asp_dist.training.packed). The packs are a function of the grid
+domain trained as one batched model (asp_dist.training.engines). The packs are a function of the grid
 and the packing stored in the manifest, so a resumed sweep rebuilds the same packs; a pack trains
 whole and writes only its members without a row, each as a cell would (row, curve, failure).
 
@@ -44,210 +45,30 @@ import os
 import shutil
 import signal
 import sys
-import tempfile
 import threading
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
-# Before Ray is imported: no usage stats, no Tune CSV/JSON/TensorBoard loggers per trial.
-os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
-os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
-# Short cells finish in bursts and each one snapshots the experiment: Tune then warns every few
-# seconds that snapshots "may become a bottleneck" (they cost milliseconds here). Keep the log readable.
-os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")
+from ray import tune
 
-import ray  # noqa: E402
-import torch  # noqa: E402
-from ray import tune  # noqa: E402
-
-from asp_dist.data.mnist import MNISTError  # noqa: E402
-from asp_dist.errors import DiskFull, SpecError, StorageError, is_disk_full  # noqa: E402
-from asp_dist.results import store  # noqa: E402
-from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace  # noqa: E402
-from asp_dist.spec import CellSpec  # noqa: E402
-from asp_dist.sweep import ledger  # noqa: E402
-from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: E402,F401
-from asp_dist.sweep.base_cache import get_base  # noqa: E402
-from asp_dist.sweep.ledger import SweepResult  # noqa: E402
-from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing  # noqa: E402
-from asp_dist.sweep.plan import Plan, RunOptions  # noqa: E402
-from asp_dist.sweep.progress import SweepCounter  # noqa: E402
-from asp_dist.training import packed  # noqa: E402
-from asp_dist.training.bases import BaseRejected  # noqa: E402
-from asp_dist.training.cell import run_cell  # noqa: E402
-from asp_dist.training.packed.single import CellDiverged  # noqa: E402
+from asp_dist.errors import DiskFull, is_disk_full
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace
+from asp_dist.sweep import ledger
+from asp_dist.sweep.ledger import SweepResult
+from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
+from asp_dist.sweep.plan import Plan, RunOptions
+from asp_dist.sweep.progress import SweepCounter
+from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
+from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
+    CKPT_TMP, DISK_FULL, TUNE_DIR, config_cells, train_cell, trial_name, unit_config, unit_from_config)
 
 __all__ = ["run_sweep", "resume_sweep", "SweepResult", "train_cell"]
 
-TUNE_DIR = "tune"
 TUNE_CURRENT = "current.json"  # which Tune experiment covers which cells
-CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
 
 log = logging.getLogger(__name__)
-
-
-# ---- the Tune trial: one cell, or one pack of cells ---------------------------------------------
-def train_cell(config: dict[str, Any]) -> None:
-    """Function trainable. Must keep no state between calls: actors are reused across cells.
-
-    ``config["cell"]`` is one cell's config, or a pack's (it has a ``pack_id``: train_pack). A full disk is
-    not a crash to retry: the trial reports it (``disk_full``) and the driver stops the sweep (DiskFullStopper);
-    whatever was being written is a temp file that is removed, never a file that counts."""
-    torch.set_num_threads(1)
-    config = config["cell"]
-    try:
-        train_pack(config) if "pack_id" in config else _train_one_cell(config)
-    except OSError as e:
-        if not is_disk_full(e):
-            raise
-        tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or config["sweep_dir"]})
-
-
-def _train_one_cell(config: dict[str, Any]) -> None:
-    spec = CellSpec.from_dict(config["spec"])
-    sweep_dir = as_path(config["sweep_dir"])
-    cell_id = config["cell_id"]
-    if store.is_done(sweep_dir, spec.domain, spec.method, cell_id):
-        tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
-        return
-    restore = _restored_state()
-    save = _checkpointer(sweep_dir, cell_id)
-    try:
-        base, _ = get_base(spec, store.bases_dir(sweep_dir))
-        curve: list[dict[str, float]] = []
-        row = run_cell(spec, base=base, checkpoint=save, restore=restore,
-                       checkpoint_every_s=config["checkpoint_every_s"], curve=curve)
-    except StorageError:
-        raise  # object storage that did not answer: a crash, retried from the last checkpoint
-    except (SpecError, BaseRejected, MNISTError, CellDiverged) as e:
-        # Deterministic (a bad spec, a base that never meets its bar, missing or corrupt data, a cell
-        # whose training diverged): a retry would fail the same way. Record it once and let the
-        # sweep go on; `resume` tries it again.
-        store.record_failure(sweep_dir, cell_id, spec.domain, spec.method, f"{type(e).__name__}: {e}")
-        tune.report({"cell_done": 0, "cell_failed": 1})
-        return
-    row["ray_node_id"] = ray.get_runtime_context().get_node_id()
-    row["ray_version"] = ray.__version__
-    store.write_curve(sweep_dir, row, curve)
-    store.write_row(sweep_dir, row, config["sweep_id"])
-    store.clear_failure(sweep_dir, cell_id)
-    tune.report({"cell_done": 1, "eval_mixed": float(row["eval_mixed"])})
-
-
-def _restored_state() -> dict | None:
-    """The state of the trial's last checkpoint (a restarted or restored trial), else None."""
-    checkpoint = tune.get_checkpoint()
-    if checkpoint is None:
-        return None
-    with checkpoint.as_directory() as d:
-        return torch.load(Path(d) / "state.pt", weights_only=False)
-
-
-def _checkpointer(sweep_dir: AnyPath, name: str):
-    """save(state): one checkpoint of the trial through tune.report."""
-    # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
-    # under the Ray temp dir (node-local scratch, pruned with its session).
-    staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
-
-    def save(state: dict) -> None:
-        # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
-        # written under a temp name and renamed, and removed once report() returns: Tune has copied
-        # it into the trial's storage by then.
-        staging.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=staging) as d:
-            part = Path(d) / ".state.pt.part"
-            torch.save(state, part)
-            os.replace(part, Path(d) / "state.pt")
-            tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
-                        checkpoint=tune.Checkpoint.from_directory(d))
-
-    return save
-
-
-def train_pack(config: dict[str, Any]) -> None:
-    """One pack (asp_dist.sweep.packing): its cells trained together by their domain's packed trainer.
-
-    The whole pack trains even when some members already have a row (so that every member's row is
-    the one an uninterrupted run writes); only members without a row are written. A restarted trial
-    continues from the pack's last checkpoint. Failures are per member, as a single cell's: a base
-    that never meets its bar, or a member that diverged, is recorded for that member only."""
-    specs = [CellSpec.from_dict(d).resolved() for d in config["specs"]]
-    sweep_dir = as_path(config["sweep_dir"])
-    pack_id = config["pack_id"]
-    todo = {s.cell_id for s in specs if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)}
-    if not todo:
-        tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
-        return
-    restore = _restored_state()
-    failures: dict[str, str] = {}
-    bases: dict[str, Any] = {}
-    for spec in specs:  # one base per key from the sweep's cache, as single cells get theirs
-        if spec.base_key in bases or spec.cell_id in failures:
-            continue
-        try:
-            bases[spec.base_key], _ = get_base(spec, store.bases_dir(sweep_dir))
-        except StorageError:
-            raise
-        except (SpecError, BaseRejected, MNISTError) as e:
-            why = f"{type(e).__name__}: {e}"
-            failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
-    live = [s for s in specs if s.cell_id not in failures]
-    composition = (pack_id, [s.cell_id for s in live])
-    if restore is not None and (restore.get("pack_id"), restore.get("cell_ids")) != composition:
-        restore = None  # another composition (a base was rejected or accepted since): start over
-    save = _checkpointer(sweep_dir, config["name"])
-    results = []
-    if live:
-        try:
-            results = packed.run_pack(live, bases=bases, curves=True, checkpoint=lambda state: save(
-                dict(state, pack_id=pack_id)), restore=restore, checkpoint_every_s=config["checkpoint_every_s"])
-        except StorageError:
-            raise
-        except (SpecError, BaseRejected, MNISTError) as e:
-            failures.update({s.cell_id: f"{type(e).__name__}: {e}" for s in live})
-    written = 0
-    for result in results:
-        spec = result.spec
-        if spec.cell_id not in todo:
-            continue  # a row written before (e.g. by the interrupted run of this pack): never rewritten
-        if result.row is None:
-            failures[spec.cell_id] = f"in pack {pack_id}: {result.error}"
-            continue
-        row = dict(result.row, pack=pack_id, ray_node_id=ray.get_runtime_context().get_node_id(),
-                   ray_version=ray.__version__)
-        store.write_curve(sweep_dir, row, result.curve or [])
-        written += store.write_row(sweep_dir, row, config["sweep_id"])
-        store.clear_failure(sweep_dir, spec.cell_id)
-    for spec in specs:
-        if spec.cell_id in failures and spec.cell_id in todo:
-            store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
-    tune.report({"cell_done": int(not failures), "cells_written": written, "cell_failed": len(failures)})
-
-
-def unit_config(unit: Unit, sweep_dir: AnyPath, sweep_id: str, checkpoint_every_s: float) -> dict[str, Any]:
-    """What a Tune trial gets: a cell's config (as before packs existed), or a pack's."""
-    common = {"sweep_dir": str(sweep_dir), "sweep_id": sweep_id, "checkpoint_every_s": checkpoint_every_s}
-    if unit.pack_id is None:
-        spec = unit.specs[0]
-        return {"spec": spec.to_dict(), "cell_id": spec.cell_id, **common}
-    return {"pack_id": unit.pack_id, "name": unit.name, "specs": [s.to_dict() for s in unit.specs],
-            "cell_ids": unit.cell_ids, **common}
-
-
-def _config_cells(config: dict[str, Any]) -> list[tuple[str, str, str]]:
-    """(cell id, domain, method) of every cell a trial's config runs."""
-    if "pack_id" in config:
-        return [(cid, s["domain"], s["method"]) for cid, s in zip(config["cell_ids"], config["specs"])]
-    return [(config["cell_id"], config["spec"]["domain"], config["spec"]["method"])]
-
-
-def trial_name(trial) -> str:
-    """A trial's name and directory are its cell id, or its pack's name (a worker's working directory ends
-    with it)."""
-    config = trial.config["cell"]
-    return config["name"] if "pack_id" in config else config["cell_id"]
 
 
 # ---- driver side: counts and failures ------------------------------------------------------------
@@ -274,7 +95,7 @@ class SweepCallback(tune.Callback):
     @staticmethod
     def _running(trials) -> set[str]:
         """The cells of the running trials (every member of a running pack: counts are per cell)."""
-        return {cell_id for t in trials if t.status == "RUNNING" for cell_id, _, _ in _config_cells(t.config["cell"])}
+        return {cell_id for t in trials if t.status == "RUNNING" for cell_id, _, _ in config_cells(t.config["cell"])}
 
     def _refresh(self, trials) -> None:
         done, failed = ledger.finished_and_failed(as_path(self.sweep_dir), self.grid)
@@ -298,17 +119,16 @@ class SweepCallback(tune.Callback):
         error = "worker failed"
         if trial.error_file and os.path.exists(trial.error_file):
             error = Path(trial.error_file).read_text()
-        config = trial.config["cell"]
-        where = f" (in pack {config['pack_id']})" if "pack_id" in config else ""
+        config = unit_from_config(trial.config["cell"])
+        where = f" (in pack {config['pack_id']})" if config["pack_id"] is not None else ""
         sweep_dir = as_path(self.sweep_dir)
-        for cell_id, domain, method in _config_cells(config):
+        for cell_id, domain, method in config_cells(config):
             if not store.is_done(sweep_dir, domain, method, cell_id):
                 store.record_failure(sweep_dir, cell_id, domain, method,
                                      f"failed after {trial.num_failures} attempt(s){where}: {error}")
         self._refresh(trials)
 
 
-DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left
 _DISK_FULL: list[str] = []  # this driver's: set by SweepCallback, read by DiskFullStopper and _run
 
 

@@ -1,5 +1,5 @@
-"""What a single cell (asp_dist.training.cell.run_cell) and a pack (asp_dist.training.packed.driver.run_pack)
-share: phase timers, the learning curve's probe and the loop that trains to the end.
+"""What the cell pipeline (asp_dist.training.pipeline.run_unit: a cell, a pack) uses besides its trainer:
+phase timers, the learning curve's probe and the loop that trains to the end.
 
     PhaseTimer    wall and CPU seconds per phase (base, data, train, eval): the row's time_* columns
     make_probe    a cheap evaluation against the base for the learning curve
@@ -62,13 +62,17 @@ def train_to_end(trainer, steps: int, progress: ProgressFn | None, save_state: C
                  checkpoint_every_s: float, checkpoint_every_steps: int | None) -> None:
     """Run trainer.train_step() until `steps` updates: progress every 1 % of them, and save_state (when
     given) every `checkpoint_every_steps` updates, or every `checkpoint_every_s` seconds without a
-    step interval -- never after the last update. One loop for a cell and for a pack."""
+    step interval -- never after the last update. Stops early once every member has failed (frozen: a
+    diverged lone cell has nothing left to train), looked at every 1 %. One loop for a cell and for a pack."""
     report_every = max(1, steps // 100)
     last_save = time.monotonic()
     while trainer.step < steps:
         trainer.train_step()
-        if progress is not None and (trainer.step % report_every == 0 or trainer.step == steps):
-            progress("train", trainer.step, steps, {})
+        if trainer.step % report_every == 0 or trainer.step == steps:
+            if progress is not None:
+                progress("train", trainer.step, steps, {})
+            if all(m.failed for m in trainer.members):
+                return
         if save_state is not None and trainer.step < steps:
             due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
                 (time.monotonic() - last_save >= checkpoint_every_s)

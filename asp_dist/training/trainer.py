@@ -9,14 +9,15 @@ is a state_dict, so a restored trainer continues bit for bit.
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import torch
 
+from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Domain, SelfPlayOut, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor
+from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor, method_weights
 from asp_dist.training.row import LOSS_TERMS
 
 CURVE_POINTS = 50  # learning-curve points per cell
@@ -25,13 +26,19 @@ PROBE_EVERY = 5  # every 5th point (10 per cell) also evaluates against the base
 
 class Trainer:
     """The training loop shared by every domain and method (the reference path: autograd and
-    torch.optim.Adam). It trains every cell that no faster engine implements: run_cell's
-    choose_trainer (asp_dist.training.cell) trains a particle cell as a one-member pack of the
-    hand-derived packed trainer (asp_dist.training.packed.single) where that implements its knobs, and
-    a VAE cell on a subclass that computes the same update in one pass (asp_dist.training.fast); the
-    packed and fast trainers are tested against this one."""
+    torch.optim.Adam). It trains every cell alone that no faster trainer of its domain implements
+    (asp_dist.training.engines: a particle or lever cell trains as a one-member pack of its domain's
+    hand-derived packed trainer, a VAE cell on a subclass that computes the same update in one pass);
+    those trainers are tested against this one. It is its own one member for the cell pipeline
+    (asp_dist.training.pipeline.UnitTrainer): `members`, `build`, `loss_columns(0)`."""
 
-    engine = "autograd"  # names the format of state_dict() in run_cell's checkpoints
+    # Capabilities (asp_dist.training.engines): trains one cell at a time, any cell.
+    engine = "autograd"  # names the format of state_dict() in checkpoints
+    packs = False
+    lone = True
+    in_sweeps = True
+    error: str | None = None  # the reference does not freeze a cell: a non-finite loss fails where it arises
+    failed = False
 
     def __init__(self, spec: CellSpec, domain: Domain, agents: torch.nn.Module, paired: Tensors,
                  unpaired: Tensors, weights: LossWeights):
@@ -63,6 +70,27 @@ class Trainer:
     def supports(cls, spec: CellSpec) -> bool:
         """Whether this trainer implements every knob value of `spec` (the reference does)."""
         return True
+
+    @classmethod
+    def build(cls, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
+              agents: Sequence[torch.nn.Module]) -> Trainer:
+        """The trainer of one cell, from the pipeline's per-member lists (of one entry)."""
+        if len(specs) != 1:
+            raise ValueError(f"{cls.__name__} trains one cell at a time, got {len(specs)}")
+        spec = specs[0]
+        return cls(spec, get_domain(spec.domain), agents[0], paired[0], unpaired[0], method_weights(spec))
+
+    @staticmethod
+    def member_order(specs: Sequence[CellSpec]) -> list[int]:
+        return list(range(len(specs)))
+
+    @property
+    def members(self) -> tuple[Trainer]:
+        return (self,)
+
+    @property
+    def train_steps(self) -> int:
+        return self.spec.train_steps
 
     def make_optimizer(self, params, lr: float):
         """The optimiser of the new agents and of each discriminator."""
@@ -146,7 +174,8 @@ class Trainer:
         self.curve.append(point)
         self.curve_sums.clear()
 
-    def loss_columns(self) -> dict[str, float | None]:
+    def loss_columns(self, i: int = 0) -> dict[str, float | None]:
+        """The row's loss_* columns (of member `i`, the only one: 0)."""
         n = self.loss_sums.get("_count", 0)
         return {f"loss_{k}": (self.loss_sums[k] / n if n and k in self.loss_sums else None) for k in LOSS_TERMS}
 

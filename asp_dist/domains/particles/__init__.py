@@ -14,7 +14,7 @@ last step is a true terminal). The message is differentiable: the listener's pol
 loss flows back through it into the speaker.
 
 Everything is vectorised over environments; the only Python loops run over time steps.
-The new agents train with hand-derived gradients (asp_dist/training/packed/particles.py, a single
+The new agents train with hand-derived gradients (asp_dist/domains/particles/packed.py, a single
 cell as a pack of one); the autograd functions here (a2c_update, paired_loss) are the reference
 that trainer is tested against, and train the base and the cells it does not implement.
 

@@ -33,7 +33,7 @@ class ReferentialDomain(GameDomain):
     accept_field = "referential_accept_accuracy"
     paper = PaperFacts(
         metric_label="mixed-team accuracy (fraction of games won)",
-        claim="not in the paper: does ASP help adopt a referential code?",
+        claim="does ASP help a new pair adopt the base pair's referential code?", in_paper=False,
         knob_labels={"referential_vocab": "vocabulary size K", "referential_msg_len": "message length L",
                      "referential_candidates": "candidates C"},
     )

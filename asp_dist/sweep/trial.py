@@ -1,0 +1,184 @@
+"""The one Tune trial function: a unit of the sweep (one cell, or a pack of cells) trained and written.
+
+What a worker does with a unit (asp_dist.sweep.packing.Unit, as ``unit_config`` hands it to Tune):
+
+1. skip it if every member already has a row (finished before Tune's state caught up);
+2. continue from the trial's last checkpoint when it has one (a restarted or restored trial) and it is
+   of these cells;
+3. get each member's base from the sweep's shared cache (asp_dist.sweep.base_cache); a base that never
+   meets its bar fails that base's members only;
+4. train the live members through the one cell pipeline (asp_dist.training.pipeline: a lone cell on its
+   lone trainer, a pack on its domain's packed trainer), checkpointing through ``tune.report``;
+5. write each member without a row as a cell (row, curve), and record each failed member once.
+
+A pack trains whole even when some members already have a row (so that every member's row is the one an
+uninterrupted run writes); only members without a row are written. A deterministic failure (a bad spec, a
+base that never meets its bar, missing or corrupt data, a member whose training diverged) is recorded under
+``failed/`` and not retried: a retry would fail the same way; ``resume`` tries it again. Object storage
+that does not answer is a crash, retried from the last checkpoint. A full disk is not a crash to retry: the
+trial reports it (``disk_full``) and the driver stops the sweep; whatever was being written is a temp file
+that is removed, never a file that counts.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import ray
+import torch
+from ray import tune
+
+from asp_dist.data.mnist import MNISTError
+from asp_dist.errors import SpecError, StorageError, is_disk_full
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath, S3Path, as_path
+from asp_dist.spec import CellSpec
+from asp_dist.sweep.base_cache import get_base
+from asp_dist.sweep.packing import Unit
+from asp_dist.training import engines
+from asp_dist.training.bases import BaseRejected
+from asp_dist.training.pipeline import run_unit, upgrade_checkpoint
+
+TUNE_DIR = "tune"
+CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
+DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left
+
+# Failures a retry would meet again: recorded once, the sweep goes on.
+DETERMINISTIC = (SpecError, BaseRejected, MNISTError)
+
+
+def unit_config(unit: Unit, sweep_dir: AnyPath, sweep_id: str, checkpoint_every_s: float) -> dict[str, Any]:
+    """What a Tune trial gets for a unit: its name (the cell id, or the pack's name), pack id (None for a
+    single cell), members' specs and cell ids, and where the sweep writes."""
+    return {"name": unit.name, "pack_id": unit.pack_id, "specs": [s.to_dict() for s in unit.specs],
+            "cell_ids": unit.cell_ids, "sweep_dir": str(sweep_dir), "sweep_id": sweep_id,
+            "checkpoint_every_s": checkpoint_every_s}
+
+
+def unit_from_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A trial's config in today's shape. A single cell's config of older code (a restored experiment) had
+    "spec" and "cell_id" instead of a one-member list."""
+    if "spec" in config:
+        config = {k: v for k, v in config.items() if k not in ("spec", "cell_id")} | {
+            "name": config["cell_id"], "pack_id": None, "specs": [config["spec"]], "cell_ids": [config["cell_id"]]}
+    return config
+
+
+def config_cells(config: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """(cell id, domain, method) of every cell a trial's config runs."""
+    config = unit_from_config(config)
+    return [(cid, s["domain"], s["method"]) for cid, s in zip(config["cell_ids"], config["specs"])]
+
+
+def trial_name(trial) -> str:
+    """A trial's name and directory are its unit's name: the cell id, or the pack's name (a worker's
+    working directory ends with it)."""
+    return unit_from_config(trial.config["cell"])["name"]
+
+
+def train_cell(config: dict[str, Any]) -> None:
+    """The function trainable of every sweep. Keeps no state between calls: actors are reused across units."""
+    torch.set_num_threads(1)
+    unit = unit_from_config(config["cell"])
+    try:
+        train_unit(unit)
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or unit["sweep_dir"]})
+
+
+def train_unit(unit: dict[str, Any]) -> None:
+    """Train one unit's members without a row and write them (the module docstring's steps)."""
+    specs = [CellSpec.from_dict(d).resolved() for d in unit["specs"]]
+    sweep_dir, pack_id = as_path(unit["sweep_dir"]), unit["pack_id"]
+    todo = {s.cell_id for s in specs if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)}
+    if not todo:
+        tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
+        return
+    failures: dict[str, str] = {}
+    bases: dict[str, Any] = {}
+    for spec in specs:  # one base per key from the sweep's cache
+        if spec.base_key in bases or spec.cell_id in failures:
+            continue
+        try:
+            bases[spec.base_key], _ = get_base(spec, store.bases_dir(sweep_dir))
+        except StorageError:
+            raise
+        except DETERMINISTIC as e:
+            why = f"{type(e).__name__}: {e}"
+            failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
+    live = [s for s in specs if s.cell_id not in failures]
+    restore = _restored_state()
+    if restore is not None:
+        restore = upgrade_checkpoint(restore)
+        if (restore.get("pack_id"), restore.get("cell_ids")) != (pack_id, [s.cell_id for s in live]):
+            restore = None  # another composition (a base was rejected or accepted since): start over
+    save = _checkpointer(sweep_dir, unit["name"])
+    results = []
+    if live:
+        trainer = engines.lone_trainer(live[0]) if pack_id is None else engines.pack_trainer(live[0])
+        try:
+            results = run_unit(trainer, live, bases=bases, curves=True,
+                               checkpoint=lambda state: save(dict(state, pack_id=pack_id)), restore=restore,
+                               checkpoint_every_s=unit["checkpoint_every_s"])
+        except StorageError:
+            raise
+        except DETERMINISTIC as e:
+            failures.update({s.cell_id: f"{type(e).__name__}: {e}" for s in live})
+    written, last = 0, None
+    for result in results:
+        spec = result.spec
+        if spec.cell_id not in todo:
+            continue  # a row written before (e.g. by the interrupted run of this pack): never rewritten
+        if result.row is None:
+            why = f"{type(result.exception).__name__}: {result.error}"
+            failures[spec.cell_id] = why if pack_id is None else f"in pack {pack_id}: {why}"
+            continue
+        row = dict(result.row, ray_node_id=ray.get_runtime_context().get_node_id(), ray_version=ray.__version__)
+        if pack_id is not None:
+            row["pack"] = pack_id
+        store.write_curve(sweep_dir, row, result.curve or [])
+        written += store.write_row(sweep_dir, row, unit["sweep_id"])
+        store.clear_failure(sweep_dir, spec.cell_id)
+        last = row
+    for spec in specs:
+        if spec.cell_id in failures and spec.cell_id in todo:
+            store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
+    report = {"cell_done": int(not failures), "cells_written": written, "cell_failed": len(failures)}
+    if pack_id is None and last is not None:
+        report["eval_mixed"] = float(last["eval_mixed"])
+    tune.report(report)
+
+
+def _restored_state() -> dict | None:
+    """The state of the trial's last checkpoint (a restarted or restored trial), else None."""
+    checkpoint = tune.get_checkpoint()
+    if checkpoint is None:
+        return None
+    with checkpoint.as_directory() as d:
+        return torch.load(Path(d) / "state.pt", weights_only=False)
+
+
+def _checkpointer(sweep_dir: AnyPath, name: str):
+    """save(state): one checkpoint of the trial through tune.report."""
+    # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
+    # under the Ray temp dir (node-local scratch, pruned with its session).
+    staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
+
+    def save(state: dict) -> None:
+        # Staged in the sweep's own tree (never the system temp dir: it may be small, shared or wiped),
+        # written under a temp name and renamed, and removed once report() returns: Tune has copied
+        # it into the trial's storage by then.
+        staging.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=staging) as d:
+            part = Path(d) / ".state.pt.part"
+            torch.save(state, part)
+            os.replace(part, Path(d) / "state.pt")
+            tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
+                        checkpoint=tune.Checkpoint.from_directory(d))
+
+    return save

@@ -1,0 +1,380 @@
+"""What the packed trainers share: stacked parameters with one batched Adam step, the members'
+records, per-member columns of scalars, and the allocator setting that packed updates want.
+
+    StackedParams         the parameters of M modules of one architecture in one flat buffer
+                          (member-stacked blocks), their gradient buffer and Adam moments, one
+                          fused Adam step for all of them; freezing of diverged members
+    PackRecords           the update count, each member's loss sums and learning curve (as Trainer
+                          records them), failures, and the checkpoint of all that
+    PackedTrainer         a domain's packed trainer's base class: PackRecords with the capabilities
+                          of asp_dist.training.engines (packs; `lone` and `in_sweeps` per domain)
+    column                per-member Python scalars as a (M, 1[, 1]) tensor
+    retain_freed_memory   glibc: keep freed memory in the heap instead of returning it at each free
+
+The whole-cell side (bases, data, checkpoints, evaluation, rows) is asp_dist.training.pipeline.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from asp_dist.spec import CellSpec
+from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
+from asp_dist.training.row import LOSS_TERMS
+from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+
+BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults
+# What each member records per update (the single-cell trainers' diagnostics), in column order.
+TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
+COL = {name: i for i, name in enumerate(TERMS)}
+
+
+def column(values: Sequence[float], *, dims: int = 2, dtype=torch.float32) -> torch.Tensor:
+    """Per-member scalars as a (M, 1[, 1]) tensor; float32 rounding of each Python float, as
+    a Python scalar gets in an op with a float32 tensor."""
+    return torch.tensor(list(values), dtype=dtype).view(-1, *([1] * (dims - 1)))
+
+
+class StackedParams:
+    """The parameters of M modules of one architecture, stacked: each parameter tensor becomes a
+    contiguous (M, *shape) block of one flat buffer (tensor-major, so that batched matmuls write
+    their gradients into contiguous blocks), with a matching gradient buffer and Adam moments.
+    Each module's parameters are re-pointed to views of its slice of the blocks, so the modules see
+    every update (and loading a module's state writes the buffer)."""
+
+    def __init__(self, modules: Sequence[torch.nn.Module], lrs: Sequence[float]):
+        shapes = [tuple(p.shape) for p in modules[0].parameters()]
+        sizes = [int(torch.Size(s).numel()) for s in shapes]
+        M, total = len(modules), len(modules) * sum(sizes)
+        self.param, self.grad = torch.zeros(total), torch.zeros(total)
+        self.exp_avg, self.exp_avg_sq = torch.zeros(total), torch.zeros(total)
+        self.steps = torch.zeros(())  # every active member steps together
+        self.lrs = list(lrs)
+        self.views: list[torch.Tensor] = []       # (M, *shape); biases as (M, 1, out) for baddbmm
+        self.grad_views: list[torch.Tensor] = []  # (M, *shape)
+        self.member_ranges: list[list[tuple[int, int]]] = [[] for _ in range(M)]
+        offset = 0
+        for shape, n in zip(shapes, sizes):
+            block = self.param[offset:offset + M * n].view(M, *shape)
+            self.views.append(block.unsqueeze(1) if len(shape) == 1 else block)
+            self.grad_views.append(self.grad[offset:offset + M * n].view(M, *shape))
+            for i in range(M):
+                self.member_ranges[i].append((offset + i * n, n))
+            offset += M * n
+        for i, module in enumerate(modules):
+            params = list(module.parameters())
+            if [tuple(p.shape) for p in params] != shapes:
+                raise ValueError("modules of a pack must have the same parameter shapes")
+            for p, (start, n) in zip(params, self.member_ranges[i]):
+                row = self.param[start:start + n].view_as(p)
+                row.copy_(p.detach())
+                p.data = row
+        self.frozen = torch.zeros(0, dtype=torch.long)
+        self._group_by_lr()
+
+    def member_flat(self, i: int, buffer: torch.Tensor | None = None) -> torch.Tensor:
+        """Member i's values of `buffer` (default: the parameters) in its module's parameter order."""
+        buffer = self.param if buffer is None else buffer
+        return torch.cat([buffer[start:start + n] for start, n in self.member_ranges[i]])
+
+    def _group_by_lr(self) -> None:
+        """Adam's calls: the whole buffer when every member has one learning rate, else one call
+        per learning rate over the slices of its members."""
+        if len(set(self.lrs)) == 1:
+            self.groups = [(self.lrs[0], [self.param], [self.grad], [self.exp_avg], [self.exp_avg_sq])]
+            return
+        self.groups = []
+        for lr in sorted(set(self.lrs)):
+            ranges = [r for i, x in enumerate(self.lrs) if x == lr for r in self.member_ranges[i]]
+            self.groups.append((lr, *([buf[start:start + n] for start, n in ranges]
+                                      for buf in (self.param, self.grad, self.exp_avg, self.exp_avg_sq))))
+
+    def freeze(self, rows: Sequence[int]) -> None:
+        """Members whose parameters Adam must leave as they are: their momentum is cleared here
+        and their gradients before every step (zero_frozen_grads), so every update of theirs is
+        exactly 0 while the calls, and so every other member's arithmetic, stay the same."""
+        for i in rows:
+            for start, n in self.member_ranges[i]:
+                self.exp_avg[start:start + n] = 0.0
+        self.frozen = torch.tensor(sorted(set(self.frozen.tolist()) | set(rows)), dtype=torch.long)
+
+    def zero_frozen_grads(self) -> None:
+        if len(self.frozen):
+            for g in self.grad_views:
+                g.index_fill_(0, self.frozen, 0.0)
+
+    def step(self) -> None:
+        """One Adam step of every member from the current contents of `grad` (torch's fused Adam
+        kernel: one pass over the buffer; torch.optim.Adam's arithmetic up to rounding)."""
+        self.zero_frozen_grads()
+        self.steps.add_(1)
+        for lr, params, grads, avgs, sqs in self.groups:
+            torch._fused_adam_(params, grads, avgs, sqs, [], [self.steps] * len(params), lr=lr, beta1=BETAS[0],
+                               beta2=BETAS[1], weight_decay=0.0, eps=EPS, amsgrad=False, maximize=False)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"param": self.param.clone(), "exp_avg": self.exp_avg.clone(), "exp_avg_sq": self.exp_avg_sq.clone(),
+                "steps": self.steps.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        for name in ("param", "exp_avg", "exp_avg_sq", "steps"):
+            getattr(self, name).copy_(state[name])
+        self.frozen = torch.zeros(0, dtype=torch.long)
+
+
+class PackRecords:
+    """What a packed trainer keeps besides its update, the same for every domain: the update count,
+    each member's loss sums over the last 10 % of training (its row's loss_* columns) and its
+    learning curve, as Trainer.record / finish_curve_point / loss_columns keep them; failures
+    (members frozen); and the checkpoint of all that with the stacked parameters.
+
+    A subclass sets, before calling _init_records(): M, members (each with spec, weights, gen,
+    terms, probe, curve, failed_step, error, failed), train_steps, net and dnet (StackedParams or
+    None), Ma, adv_idx and lam_now (the ASP members, λ1 per update of the
+    chunk). It implements _freeze_params(rows) (freeze the members' parameters and
+    discriminators) and _draw_chunk() (the random draws of updates [step, step + CHUNK))."""
+
+    def _init_records(self) -> None:
+        # per member: the loss terms it has, and its float64 loss weights (as Trainer sums them)
+        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in self.members])
+        self.w64 = {name: column([getattr(m.weights, name) for m in self.members], dtype=torch.float64).view(-1)
+                    for name in ("self_play", "paired")}
+        self.step = 0
+        self.window_start = int(0.9 * self.train_steps)
+        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
+        self.curve_window = max(1, self.curve_every // 10)
+        self.loss_sums = torch.zeros(self.M, len(LOSS_TERMS), dtype=torch.float64)
+        self.loss_count = 0
+        self.curve_sums = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        self.curve_count = 0
+        self.active = [True] * self.M
+        self.chunk_start = self.chunk_end = 0
+        self.chunk_gen_states: list[torch.Tensor] = []
+
+    def in_curve_window(self) -> bool:
+        return (-self.step - 1) % self.curve_every < self.curve_window
+
+    def recording(self) -> bool:
+        return self.step >= self.window_start or self.in_curve_window()
+
+    # ---- failures --------------------------------------------------------------------------------
+    def _freeze(self, rows: list[int], why: str) -> None:
+        """Mark members failed and freeze their parameters (and their discriminators) for good."""
+        for i in rows:
+            self.active[i] = False
+            self.members[i].failed_step = self.step
+            self.members[i].error = f"{why} at update {self.step} of {self.train_steps}"
+        self._freeze_params(rows)
+
+    def _freeze_params(self, rows: list[int]) -> None:
+        raise NotImplementedError
+
+    def _draw_chunk(self) -> None:
+        raise NotImplementedError
+
+    # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
+    def _record(self, vals: dict[str, torch.Tensor], j: int) -> None:
+        """One update's diagnostics (`vals`: per-member "self_play" and "paired", the ASP members'
+        others) for update j of the chunk; a member whose loss is not finite is frozen."""
+        V = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
+        for name, v in vals.items():
+            if name in ("self_play", "paired"):
+                V[:, COL[name]] = v
+            else:  # ASP members only
+                V[self.adv_idx, COL[name]] = v.double()
+        V.masked_fill_(~self.present, 0.0)  # a term the member does not have counts 0, as in Trainer
+        total = self.w64["self_play"] * V[:, 0] + self.w64["paired"] * V[:, 1]
+        if self.Ma:
+            total[self.adv_idx] += self.lam_now[j] * V[self.adv_idx, 2]
+        V[:, COL["total"]] = total
+        if not bool(torch.isfinite(V).all()):
+            self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
+                         "non-finite loss")
+        if self.step >= self.window_start:
+            self.loss_sums += V[:, :len(LOSS_TERMS)]
+            self.loss_count += 1
+        if self.in_curve_window():
+            self.curve_sums += V
+            self.curve_count += 1
+
+    def _finish_curve_point(self) -> None:
+        if self.step % self.curve_every and self.step != self.train_steps:
+            return
+        n, sums = self.curve_count, self.curve_sums.tolist()
+        for i, m in enumerate(self.members):
+            if m.failed:
+                continue
+            point = {"step": float(self.step),
+                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
+            if n:
+                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][COL[k]] / n for k in m.terms})
+            index = len(m.curve)
+            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
+                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
+            m.curve.append(point)
+        self.curve_sums.zero_()
+        self.curve_count = 0
+
+    def loss_columns(self, i: int) -> dict[str, float | None]:
+        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
+        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def _state(self, **own: Any) -> dict[str, Any]:
+        """The trainer's state with the subclass's `own` entries (its self-play state): everything to
+        continue bit for bit; the draws of the current chunk are re-made from the generators' states
+        at its start."""
+        return {
+            "step": self.step, "net": self.net.state_dict(),
+            "dnet": self.dnet.state_dict() if self.dnet is not None else None,
+            **own, "chunk_start": self.chunk_start,
+            "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
+            else [m.gen.get_state() for m in self.members],
+            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
+            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
+            "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
+                        for m in self.members],
+        }
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        """Load what _state saved (a subclass loads its own entries first)."""
+        self.net.load_state_dict(state["net"])
+        if self.dnet is not None:
+            self.dnet.load_state_dict(state["dnet"])
+        self.loss_sums.copy_(state["loss_sums"])
+        self.curve_sums.copy_(state["curve_sums"])
+        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
+        for m, saved in zip(self.members, state["members"]):
+            m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
+        for m, g in zip(self.members, state["gens"]):
+            m.gen.set_state(g)
+        self.active = [not m.failed for m in self.members]
+        self._freeze_params([i for i, a in enumerate(self.active) if not a])
+        self.step = self.chunk_start = self.chunk_end = state["chunk_start"]
+        if state["step"] > self.step:  # re-make the chunk's draws, continue inside it
+            self._draw_chunk()
+        self.step = state["step"]
+
+
+class PackedTrainer(PackRecords):
+    """Base of a domain's packed trainer: its capabilities as asp_dist.training.engines reads them. A
+    subclass sets `supports` and `pack_key` (static methods), and `lone = True` where a single cell is
+    faster as a one-member pack of it than on the domain's other trainers; `engine` is its class name."""
+
+    engine = "packed"  # each subclass: its own name (__init_subclass__)
+    packs = True
+    lone = False
+    in_sweeps = True
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.engine = cls.__name__
+
+    @classmethod
+    def build(cls, specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence):
+        return cls(specs, paired, unpaired, agents)
+
+    @staticmethod
+    def member_order(specs: Sequence[CellSpec]) -> list[int]:
+        """The members' places in the pack (asp_dist.training.pipeline): the order given."""
+        return list(range(len(specs)))
+
+
+def retain_freed_memory() -> None:
+    """Keep freed memory in the process's heap (glibc: mmap threshold 32 MiB, trim threshold
+    256 MiB) instead of handing it back to the kernel at every free. Process-wide and idempotent;
+    a no-op without glibc's mallopt. A packed trainer whose updates need it calls it once, from
+    its constructor (today PackedLeverTrainer).
+
+    Why: a pack's intermediate tensors are K times a single cell's (~0.1-3 MB for lever packs).
+    glibc serves blocks over its mmap threshold with a fresh mmap and unmaps them on free, and
+    trims the heap top beyond its trim threshold; both thresholds adapt to what was freed before,
+    so whether a given process churns depends on its history. A lever pack of 21 cells without
+    this page-faults 120 to 1,050 times per update (varying from process to process) and spends
+    ~20 % more CPU per update (bench/bench_packed_allocator.py); with it, ~2 faults per update. A
+    particle pack (K = 21 or 64) stays under the adapted thresholds by itself (< 1 fault per
+    update, the same CPU time either way), so the particle trainer does not call it.
+
+    What it costs: memory the process frees stays mapped until it exits (peak RSS is unchanged;
+    the RSS no longer shrinks after a peak), and the setting stays for the rest of the process, so
+    a Ray worker that trained a lever pack keeps it for the cells it trains next
+    (bench/bench_packed_levers.py, since merged into bench/bench_packing.py, found the single-cell
+    path's timings the same either way)."""
+    global _MALLOC_DONE
+    if _MALLOC_DONE:
+        return
+    _MALLOC_DONE = True
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    mallopt(-3, 32 << 20)   # M_MMAP_THRESHOLD (its maximum on 64-bit glibc)
+    mallopt(-1, 256 << 20)  # M_TRIM_THRESHOLD
+
+
+_MALLOC_DONE = False
+
+
+@dataclass(kw_only=True)
+class PackMember:
+    """One cell of a pack: its spec and what every packed trainer keeps per member (a domain's
+    trainer adds its networks)."""
+
+    spec: CellSpec
+    weights: LossWeights
+    gen: torch.Generator
+    n_paired: int
+    terms: tuple[str, ...]           # the diagnostics this member records (as its single-cell trainer)
+    probe: Callable[[int], dict[str, float]] | None = None
+    curve: list[dict[str, float]] = field(default_factory=list)
+    failed_step: int | None = None
+    error: str | None = None
+
+    @property
+    def self_play(self) -> bool:
+        return self.weights.needs_self_play
+
+    @property
+    def adversary(self) -> bool:
+        return self.weights.needs_adversary
+
+    @property
+    def failed(self) -> bool:
+        return self.error is not None
+
+
+def checked_members(specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence, *,
+                    supports: Callable[[CellSpec], bool], shared: Sequence[str], cannot: str) -> list[CellSpec]:
+    """The members' resolved specs, after the checks every packed trainer's constructor makes: one
+    spec, P, U and agents per member (at least one), each spec supported (else ValueError: `cannot`
+    says which cells can), and all agreeing on the `shared` fields (tensor shapes, training length)."""
+    specs = [s.resolved() for s in specs]
+    if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
+        raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
+    for s in specs:
+        if not supports(s):
+            raise ValueError(f"{s.cell_id} cannot be packed ({cannot})")
+        diff = [n for n in shared if getattr(s, n) != getattr(specs[0], n)]
+        if diff:
+            raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
+    return specs
+
+
+def asp_members_first(specs: Sequence[CellSpec]) -> list[int]:
+    """A member order (a packed trainer's member_order): members with an adversary first, so that their
+    rows of the pack are a prefix (views instead of gathers); otherwise the order given."""
+    return sorted(range(len(specs)), key=lambda i: not method_weights(specs[i]).needs_adversary)
+
+
+def member_terms(weights: LossWeights, n_paired: int) -> tuple[str, ...]:
+    """The loss and discriminator columns a member records, in the single-cell trainers' order."""
+    return (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n_paired else ()) \
+        + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ()) \
+        + ("total",)
