@@ -10,6 +10,7 @@ from checkpoints import checkpoint_sink
 from asp_dist.spec import FIELD_NAMES
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.training.cell import run_cell
+from asp_dist.training.records import TERMS
 from asp_dist.training.row import VOLATILE_COLUMNS, comparable
 from asp_dist.training.row import schema as row_schema
 
@@ -69,6 +70,27 @@ def test_a_checkpoint_from_before_engines_were_named_still_restores(tiny_signali
     old = {"version": 1, "cell_id": state["cell_ids"][0], "trainer": state["trainer"], "timings": state["timings"][0]}
     resumed = run_cell(tiny_signaling, restore=old)
     assert resumed["resumed_from_step"] == 30 and comparable(resumed) == comparable(uninterrupted)
+
+
+def test_a_reference_checkpoint_with_its_sums_by_name_still_restores(tiny_signaling):
+    """Before the one records class (asp_dist.training.records) the reference Trainer kept its loss and curve
+    sums as dicts by term name: such a state continues to the uninterrupted row and curve."""
+    spec = tiny_signaling.replace(train_steps=1000)  # curve points every 20 updates, each the mean of the last 2
+    saved, keep = checkpoint_sink()
+    curve: list = []
+    uninterrupted = run_cell(spec, checkpoint=keep, checkpoint_every_steps=959, curve=curve)
+    state = torch.load(io.BytesIO(saved[0]), weights_only=False)
+    trainer = dict(state["trainer"])
+    records = trainer.pop("records")
+    assert records["loss_count"] == 59 and records["curve_count"] == 1  # inside both windows
+    trainer["loss_sums"] = {k: float(records["loss_sums"][0, c]) for c, k in enumerate(TERMS[:5])} | {
+        "_count": records["loss_count"]}
+    trainer["curve_sums"] = {k: float(records["curve_sums"][0, c]) for c, k in enumerate(TERMS)} | {
+        "_count": records["curve_count"]}
+    resumed_curve: list = []
+    resumed = run_cell(spec, restore=dict(state, trainer=trainer), curve=resumed_curve)
+    assert resumed["resumed_from_step"] == 959 and comparable(resumed) == comparable(uninterrupted)
+    assert resumed_curve == curve
 
 
 def test_checkpoint_of_another_cell_is_refused(tiny_signaling):

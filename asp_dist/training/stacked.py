@@ -4,8 +4,9 @@ records, per-member columns of scalars, and the allocator setting that packed up
     StackedParams         the parameters of M modules of one architecture in one flat buffer
                           (member-stacked blocks), their gradient buffer and Adam moments, one
                           fused Adam step for all of them; freezing of diverged members
-    PackRecords           the update count, each member's loss sums and learning curve (as Trainer
-                          records them), failures, and the checkpoint of all that
+    PackRecords           the update count, the members' records (asp_dist.training.records.Records,
+                          the class the reference Trainer records with too), failures, and the
+                          checkpoint of all that
     PackedTrainer         a domain's packed trainer's base class: PackRecords with the capabilities
                           of asp_dist.training.engines (packs; `lone` and `in_sweeps` per domain)
     column                per-member Python scalars as a (M, 1[, 1]) tensor
@@ -25,14 +26,11 @@ from typing import Any
 import torch
 
 from asp_dist.spec import CellSpec
-from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
-from asp_dist.training.row import LOSS_TERMS
-from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY
+from asp_dist.training.methods import LossWeights, method_weights
+from asp_dist.training.records import COL, TERMS, Records, member_terms  # noqa: F401  (TERMS, member_terms: re-exported)
 
 BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults
 # What each member records per update (the single-cell trainers' diagnostics), in column order.
-TERMS = LOSS_TERMS + ("disc_acc_real", "disc_acc_fake", "d_fake")
-COL = {name: i for i, name in enumerate(TERMS)}
 
 
 def column(values: Sequence[float], *, dims: int = 2, dtype=torch.float32) -> torch.Tensor:
@@ -142,26 +140,20 @@ class PackRecords:
 
     def _init_records(self) -> None:
         # per member: the loss terms it has, and its float64 loss weights (as Trainer sums them)
-        self.present = torch.tensor([[name in m.terms for name in TERMS] for m in self.members])
+        self.records = Records([m.terms for m in self.members], self.train_steps)
+        self.present = self.records.present
         self.w64 = {name: column([getattr(m.weights, name) for m in self.members], dtype=torch.float64).view(-1)
                     for name in ("self_play", "paired")}
         self.step = 0
-        self.window_start = int(0.9 * self.train_steps)
-        self.curve_every = max(1, self.train_steps // CURVE_POINTS)
-        self.curve_window = max(1, self.curve_every // 10)
-        self.loss_sums = torch.zeros(self.M, len(LOSS_TERMS), dtype=torch.float64)
-        self.loss_count = 0
-        self.curve_sums = torch.zeros(self.M, len(TERMS), dtype=torch.float64)
-        self.curve_count = 0
         self.active = [True] * self.M
         self.chunk_start = self.chunk_end = 0
         self.chunk_gen_states: list[torch.Tensor] = []
 
     def in_curve_window(self) -> bool:
-        return (-self.step - 1) % self.curve_every < self.curve_window
+        return self.records.in_curve_window(self.step)
 
     def recording(self) -> bool:
-        return self.step >= self.window_start or self.in_curve_window()
+        return self.records.recording(self.step)
 
     # ---- failures --------------------------------------------------------------------------------
     def _freeze(self, rows: list[int], why: str) -> None:
@@ -196,34 +188,13 @@ class PackRecords:
         if not bool(torch.isfinite(V).all()):
             self._freeze([i for i, ok in enumerate(torch.isfinite(V).all(1).tolist()) if not ok and self.active[i]],
                          "non-finite loss")
-        if self.step >= self.window_start:
-            self.loss_sums += V[:, :len(LOSS_TERMS)]
-            self.loss_count += 1
-        if self.in_curve_window():
-            self.curve_sums += V
-            self.curve_count += 1
+        self.records.add(self.step, V)
 
     def _finish_curve_point(self) -> None:
-        if self.step % self.curve_every and self.step != self.train_steps:
-            return
-        n, sums = self.curve_count, self.curve_sums.tolist()
-        for i, m in enumerate(self.members):
-            if m.failed:
-                continue
-            point = {"step": float(self.step),
-                     "lambda_unpaired_now": m.weights.unpaired * lambda_factor(m.spec, self.step - 1)}
-            if n:
-                point.update({(f"loss_{k}" if k in LOSS_TERMS else k): sums[i][COL[k]] / n for k in m.terms})
-            index = len(m.curve)
-            if m.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.train_steps):
-                point.update({f"probe_{k}": float(v) for k, v in m.probe(self.step).items()})
-            m.curve.append(point)
-        self.curve_sums.zero_()
-        self.curve_count = 0
+        self.records.finish_point(self.step, self.members)
 
     def loss_columns(self, i: int) -> dict[str, float | None]:
-        n, terms, sums = self.loss_count, self.members[i].terms, self.loss_sums[i].tolist()
-        return {f"loss_{k}": (sums[c] / n if n and k in terms else None) for c, k in enumerate(LOSS_TERMS)}
+        return self.records.loss_columns(i)
 
     # ---- checkpoints -------------------------------------------------------------------------
     def _state(self, **own: Any) -> dict[str, Any]:
@@ -236,8 +207,7 @@ class PackRecords:
             **own, "chunk_start": self.chunk_start,
             "gens": [g.clone() for g in self.chunk_gen_states] if self.chunk_end > self.chunk_start
             else [m.gen.get_state() for m in self.members],
-            "loss_sums": self.loss_sums.clone(), "loss_count": self.loss_count,
-            "curve_sums": self.curve_sums.clone(), "curve_count": self.curve_count,
+            **self.records.state(),
             "members": [{"curve": [dict(p) for p in m.curve], "failed_step": m.failed_step, "error": m.error}
                         for m in self.members],
         }
@@ -247,9 +217,7 @@ class PackRecords:
         self.net.load_state_dict(state["net"])
         if self.dnet is not None:
             self.dnet.load_state_dict(state["dnet"])
-        self.loss_sums.copy_(state["loss_sums"])
-        self.curve_sums.copy_(state["curve_sums"])
-        self.loss_count, self.curve_count = state["loss_count"], state["curve_count"]
+        self.records.load(state)
         for m, saved in zip(self.members, state["members"]):
             m.curve, m.failed_step, m.error = [dict(p) for p in saved["curve"]], saved["failed_step"], saved["error"]
         for m, g in zip(self.members, state["gens"]):
@@ -371,10 +339,3 @@ def asp_members_first(specs: Sequence[CellSpec]) -> list[int]:
     """A member order (a packed trainer's member_order): members with an adversary first, so that their
     rows of the pack are a prefix (views instead of gathers); otherwise the order given."""
     return sorted(range(len(specs)), key=lambda i: not method_weights(specs[i]).needs_adversary)
-
-
-def member_terms(weights: LossWeights, n_paired: int) -> tuple[str, ...]:
-    """The loss and discriminator columns a member records, in the single-cell trainers' order."""
-    return (("self_play",) if weights.needs_self_play else ()) + (("paired",) if n_paired else ()) \
-        + (("unpaired", "disc", "disc_acc_real", "disc_acc_fake", "d_fake") if weights.needs_adversary else ()) \
-        + ("total",)

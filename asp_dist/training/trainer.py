@@ -8,7 +8,6 @@ is a state_dict, so a restored trainer continues bit for bit.
 
 from __future__ import annotations
 
-from collections import defaultdict
 from typing import Any, Callable, Sequence
 
 import torch
@@ -18,10 +17,7 @@ from asp_dist.domains.contract import Domain, SelfPlayOut, Tensors
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor, method_weights
-from asp_dist.training.row import LOSS_TERMS
-
-CURVE_POINTS = 50  # learning-curve points per cell
-PROBE_EVERY = 5  # every 5th point (10 per cell) also evaluates against the base, cheaply
+from asp_dist.training.records import CURVE_POINTS, PROBE_EVERY, TERMS, Records, member_terms  # noqa: F401
 
 
 class Trainer:
@@ -53,14 +49,10 @@ class Trainer:
                                            make_optimizer=self.make_optimizer)
         self.sp_state = domain.init_self_play(spec, agents, self.gen) if weights.needs_self_play else {}
         self.step = 0
-        # Diagnostics: mean of each loss term over the last 10 % of training (the row's loss_*
-        # columns), and a learning curve of CURVE_POINTS points, each the mean over the
-        # updates just before it (a tenth of the interval between points).
-        self.window_start = int(0.9 * spec.train_steps)
-        self.loss_sums: dict[str, float] = defaultdict(float)
-        self.curve_every = max(1, spec.train_steps // CURVE_POINTS)
-        self.curve_window = max(1, self.curve_every // 10)
-        self.curve_sums: dict[str, float] = defaultdict(float)
+        # Diagnostics (asp_dist.training.records, as a packed trainer keeps them for each member): the mean
+        # of each loss term over the last 10 % of training (the row's loss_* columns) and the learning
+        # curve. The paired loss is computed, so recorded, whenever it has a weight.
+        self.records = Records([member_terms(weights, int(weights.paired != 0.0))], spec.train_steps)
         self.curve: list[dict[str, float]] = []
         # probe(step) -> metrics: a cheap evaluation against the base, set by run_cell; it draws
         # from its own generator, so probing never changes what is trained.
@@ -102,14 +94,9 @@ class Trainer:
         factor = lambda_factor(self.spec, self.step)
         return w if factor == 1.0 else LossWeights(w.self_play, w.paired, w.unpaired * factor)
 
-    def in_curve_window(self) -> bool:
-        """Whether this update is among the last curve_window before a curve point."""
-        to_point = (-self.step - 1) % self.curve_every  # updates after this one until the next curve point
-        return to_point < self.curve_window
-
     def recording(self) -> bool:
         """Whether this update's loss values are recorded (final window or a curve window)."""
-        return self.step >= self.window_start or self.in_curve_window()
+        return self.records.recording(self.step)
 
     def train_step(self) -> None:
         spec, w = self.spec, self.weights_now()
@@ -148,36 +135,16 @@ class Trainer:
         return sp_out, paired_loss
 
     def record(self, values: dict[str, float]) -> None:
-        """Add one recorded update's values to the final window and/or the open curve point."""
-        if self.step >= self.window_start:
-            for name in LOSS_TERMS:
-                if name in values:
-                    self.loss_sums[name] += values[name]
-            self.loss_sums["_count"] += 1
-        if self.in_curve_window():
-            for name, value in values.items():
-                self.curve_sums[name] += value
-            self.curve_sums["_count"] += 1
+        """Add one recorded update's values (by TERMS name) to the records."""
+        self.records.add(self.step, torch.tensor([[values.get(name, 0.0) for name in TERMS]], dtype=torch.float64))
 
     def finish_curve_point(self) -> None:
         """After update `step`, close the curve point that ends there (if one does)."""
-        if self.step % self.curve_every and self.step != self.spec.train_steps:
-            return
-        n = self.curve_sums.pop("_count", 0)
-        # λ1 of the update just before the point.
-        point = {"step": float(self.step),
-                 "lambda_unpaired_now": self.weights.unpaired * lambda_factor(self.spec, self.step - 1)}
-        point.update({f"loss_{k}" if k in LOSS_TERMS else k: v / n for k, v in self.curve_sums.items()} if n else {})
-        index = len(self.curve)
-        if self.probe is not None and (index % PROBE_EVERY == PROBE_EVERY - 1 or self.step == self.spec.train_steps):
-            point.update({f"probe_{k}": float(v) for k, v in self.probe(self.step).items()})
-        self.curve.append(point)
-        self.curve_sums.clear()
+        self.records.finish_point(self.step, self.members)
 
     def loss_columns(self, i: int = 0) -> dict[str, float | None]:
         """The row's loss_* columns (of member `i`, the only one: 0)."""
-        n = self.loss_sums.get("_count", 0)
-        return {f"loss_{k}": (self.loss_sums[k] / n if n and k in self.loss_sums else None) for k in LOSS_TERMS}
+        return self.records.loss_columns(i)
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -187,8 +154,7 @@ class Trainer:
             "adversaries": self.adversaries.full_state() if self.adversaries is not None else None,
             "gen": self.gen.get_state(),
             "sp_state": {k: v.clone() for k, v in self.sp_state.items()},
-            "loss_sums": dict(self.loss_sums),
-            "curve_sums": dict(self.curve_sums),
+            "records": self.records.state(),
             "curve": [dict(p) for p in self.curve],
         }
 
@@ -205,6 +171,8 @@ class Trainer:
                 group.update(self.domain.optimizer_options)
         self.gen.set_state(state["gen"])
         self.sp_state = {k: v.clone() for k, v in state["sp_state"].items()}
-        self.loss_sums = defaultdict(float, state["loss_sums"])
-        self.curve_sums = defaultdict(float, state.get("curve_sums", {}))
+        if "records" in state:
+            self.records.load(state["records"])
+        else:  # a state of older code: the sums by name
+            self.records.load_single(state["loss_sums"], state.get("curve_sums", {}))
         self.curve = [dict(p) for p in state.get("curve", [])]
