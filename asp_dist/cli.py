@@ -243,7 +243,7 @@ DASHBOARD_MODULES = ("aiohttp", "aiohttp_cors", "grpc", "opencensus", "opentelem
 
 def check_run_flags(args: argparse.Namespace) -> None:
     """The flags of sweep and resume that need no grid, refused before anything is read or written."""
-    from asp_dist.sweep.ledger import check_run_options, parse_address
+    from asp_dist.sweep.preflight import check_run_options, parse_address
     from asp_dist.sweep.packing import check_packing
 
     check_run_options(args.workers, args.max_failures, args.checkpoint_every, args.connect_timeout)
@@ -286,21 +286,21 @@ def _run_options(args: argparse.Namespace):
 
 
 def _interruptible(args: argparse.Namespace, name_of, run) -> int:
-    """Run a sweep command with SIGTERM behaving as Ctrl-C from its first line on (ledger.sigterm_as_interrupt):
+    """Run a sweep command with SIGTERM behaving as Ctrl-C from its first line on (signals.sigterm_as_interrupt):
     the sweep stops, its lock and Ray are released, finished cells stay. Exit 128 + the signal."""
     import signal
 
-    from asp_dist.sweep import ledger
+    from asp_dist.sweep import signals
 
     # --connect-timeout also bounds the S3 endpoint's first answer (the other commands: ASP_DIST_S3_TIMEOUT).
-    with ledger.sigterm_as_interrupt(), first_answer_within(args.connect_timeout):
+    with signals.sigterm_as_interrupt(), first_answer_within(args.connect_timeout):
         try:
             return run()
         except (KeyboardInterrupt, SystemExit) as e:
             # ray.init answers SIGTERM with sys.exit(SIGTERM) while it starts, before its handler is replaced.
             if isinstance(e, SystemExit) and e.code != signal.SIGTERM:
                 raise
-            signum = signal.SIGTERM if isinstance(e, SystemExit) else (ledger.interrupted_by or signal.SIGINT)
+            signum = signal.SIGTERM if isinstance(e, SystemExit) else (signals.interrupted_by or signal.SIGINT)
             name = name_of()
             hint = ""
             try:
@@ -331,7 +331,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     name: list[str] = []
 
     def run() -> int:
-        from asp_dist.sweep.ledger import check_address, check_can_start
+        from asp_dist.sweep.preflight import check_address, check_can_start
         from asp_dist.sweep.plan import Plan
 
         # Everything a user can get wrong is refused before paying for the Ray import, and nothing is written
@@ -353,7 +353,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_resume(args: argparse.Namespace) -> int:
     def run() -> int:
-        from asp_dist.sweep.ledger import check_address, check_can_resume
+        from asp_dist.sweep.preflight import check_address, check_can_resume
         from asp_dist.sweep.plan import Plan
 
         check_run_flags(args)

@@ -15,7 +15,7 @@ import pytest
 
 from asp_dist.errors import SchemaError, SweepError
 from asp_dist.results import store
-from asp_dist.sweep import ledger
+from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.spaces import expand
 
 
@@ -36,11 +36,11 @@ def test_a_directory_that_is_not_a_sweep_is_refused(tmp_path, smoke_specs):
     foreign.mkdir()
     (foreign / "notes.txt").write_text("mine")
     with pytest.raises(SweepError, match="is not a sweep"):
-        ledger.check_sweep_dir(foreign)
-    ledger.check_sweep_dir(tmp_path / "new")  # created, and writable
+        preflight.check_sweep_dir(foreign)
+    preflight.check_sweep_dir(tmp_path / "new")  # created, and writable
     store.write_manifest(tmp_path / "new", ledger.new_manifest("new", "smoke", smoke_specs))
     (tmp_path / "new" / "stray.txt").write_text("x")
-    ledger.check_sweep_dir(tmp_path / "new")  # a sweep may hold other files
+    preflight.check_sweep_dir(tmp_path / "new")  # a sweep may hold other files
 
 
 def test_lock_refuses_a_second_run_and_dies_with_its_holder(tmp_path):
@@ -136,37 +136,37 @@ def test_status_reads_a_running_sweep_without_blocking_or_refusing_it(tmp_path, 
 
 def test_sigterm_stops_a_sweep_like_ctrl_c(monkeypatch):
     previous = signal.getsignal(signal.SIGTERM)
-    with ledger.sigterm_as_interrupt():
-        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
-        with ledger.sigterm_as_interrupt():  # nested: a no-op
+    with signals.sigterm_as_interrupt():
+        assert signal.getsignal(signal.SIGTERM) is signals._sigterm
+        with signals.sigterm_as_interrupt():  # nested: a no-op
             pass
-        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
+        assert signal.getsignal(signal.SIGTERM) is signals._sigterm
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(5)
-        assert ledger.interrupted_by == signal.SIGTERM
+        assert signals.interrupted_by == signal.SIGTERM
         # While Tune runs it owns SIGINT (a graceful stop): SIGTERM goes the same way.
         tune_stops = []
         monkeypatch.setattr(signal, "getsignal", lambda s, real=signal.getsignal:
                             (lambda n, f: tune_stops.append(n)) if s == signal.SIGINT else real(s))
-        ledger._sigterm(signal.SIGTERM, None)
+        signals._sigterm(signal.SIGTERM, None)
         assert tune_stops == [signal.SIGINT]
         # A background job ignores SIGINT; SIGTERM still stops it.
         monkeypatch.setattr(signal, "getsignal", lambda s, real=signal.getsignal:
                             signal.SIG_IGN if s == signal.SIGINT else real(s))
         with pytest.raises(KeyboardInterrupt):
-            ledger._sigterm(signal.SIGTERM, None)
+            signals._sigterm(signal.SIGTERM, None)
         monkeypatch.undo()
     assert signal.getsignal(signal.SIGTERM) is previous
 
 
 def test_manifest_keeps_the_grid_and_refuses_another(tmp_path, smoke_specs):
-    first = ledger.check_manifest(tmp_path, "exp", smoke_specs, "smoke")
+    first = preflight.check_manifest(tmp_path, "exp", smoke_specs, "smoke")
     assert first["cells"] == [s.cell_id for s in smoke_specs] and first["space"] == "smoke"
     store.write_manifest(tmp_path, first)
-    assert ledger.check_manifest(tmp_path, "exp", list(reversed(smoke_specs)), "smoke") == first  # order-free
+    assert preflight.check_manifest(tmp_path, "exp", list(reversed(smoke_specs)), "smoke") == first  # order-free
     with pytest.raises(SweepError, match="was started with another grid .* 18 cells.* now 'other', 17 cells"):
-        ledger.check_manifest(tmp_path, "exp", smoke_specs[1:], "other")
+        preflight.check_manifest(tmp_path, "exp", smoke_specs[1:], "other")
     assert ledger.specs_from_manifest(store.read_manifest(tmp_path)) == smoke_specs
 
 

@@ -28,7 +28,7 @@ from harness import env, fingerprint, free_port, kill_all, parquet_files, sessio
 from asp_dist import cli
 from asp_dist.data.mnist import MNISTError
 from asp_dist.results import store
-from asp_dist.sweep import ledger
+from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.spaces import expand
 
 
@@ -80,9 +80,9 @@ def test_address_and_connect_timeout_flags(tmp_path, capsys):
         assert cli.main(["sweep", "smoke", *results, *argv]) == 2
         err = capsys.readouterr().err
         assert needle in err and len(err.strip().splitlines()) == 1, err
-    assert ledger.parse_address("ray://head.example:10001") == ("head.example", 10001)
-    assert ledger.parse_address("[::1]:6379") == ("::1", 6379)
-    assert ledger.parse_address("auto") is None
+    assert preflight.parse_address("ray://head.example:10001") == ("head.example", 10001)
+    assert preflight.parse_address("[::1]:6379") == ("::1", 6379)
+    assert preflight.parse_address("auto") is None
     assert not (tmp_path / "r").exists()
 
 
@@ -147,9 +147,9 @@ def test_embedded_ray_starts_no_dashboard_unless_asked_and_keeps_the_sweeps_sigt
     monkeypatch.setattr(ray_host, "prune_ray_sessions", lambda d: pruned.append(d) or [])
     monkeypatch.setattr(ray_host, "_start_reaper", lambda d: None)
     out = io.StringIO()
-    with ledger.sigterm_as_interrupt():
+    with signals.sigterm_as_interrupt():
         with ray_host.ray_session(2, None, str(tmp_path), stream=out):
-            assert signal.getsignal(signal.SIGTERM) is ledger._sigterm, "ray.init's SIGTERM handler was kept"
+            assert signal.getsignal(signal.SIGTERM) is signals._sigterm, "ray.init's SIGTERM handler was kept"
         with ray_host.ray_session(2, None, str(tmp_path), dashboard=True, stream=out):
             pass
     assert calls[0]["include_dashboard"] is False and calls[0]["dashboard_host"] == "127.0.0.1"
@@ -184,12 +184,12 @@ def test_a_sigterm_while_ray_starts_reaches_the_sweep_whatever_handler_ray_insta
     monkeypatch.setattr(ray_host.ray, "is_initialized", lambda: False)
     monkeypatch.setattr(ray_host, "prune_ray_sessions", lambda d: [])
     monkeypatch.setattr(ray_host, "_start_reaper", lambda d: None)
-    with ledger.sigterm_as_interrupt():
+    with signals.sigterm_as_interrupt():
         with pytest.raises(KeyboardInterrupt):
             with ray_host.ray_session(2, None, str(tmp_path)):
                 pytest.fail("the sweep went on after a SIGTERM during start-up")
-        assert signal.getsignal(signal.SIGTERM) is ledger._sigterm
-    assert started == [True] and shut == [True] and ledger.interrupted_by == signal.SIGTERM
+        assert signal.getsignal(signal.SIGTERM) is signals._sigterm
+    assert started == [True] and shut == [True] and signals.interrupted_by == signal.SIGTERM
     assert ray_utils.set_sigterm_handler is not None and "lambda" not in ray_utils.set_sigterm_handler.__name__
 
 

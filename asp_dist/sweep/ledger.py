@@ -1,9 +1,8 @@
 """The ledger of a sweep: its name and directory, its lock, its grid (manifest) and its status.
 
-Everything a sweep checks and records around running cells, and nothing that runs them: no Ray
-import, so `asp-dist status`, input validation and their tests are fast and need no cluster.
-Also here, for the same reason: the check that a cluster address answers (before Ray is imported
-and anything is written) and SIGTERM handled as Ctrl-C from a sweep command's first line on.
+What a sweep records around running cells, and nothing that runs them: no Ray import, so `asp-dist status`
+and its tests are fast and need no cluster. The checks made before a run (directories, options, the
+cluster address, the grid) are asp_dist.sweep.preflight; SIGTERM as Ctrl-C is asp_dist.sweep.signals.
 The files themselves (manifest, finished cells, failures) are laid out by asp_dist.results.store;
 this module decides what they must say for a sweep to start, continue or be reported.
 
@@ -15,14 +14,11 @@ of an fcntl lock, which object storage does not have.
 from __future__ import annotations
 
 import fcntl
-import math
 import os
 import re
 import signal
 import socket
 import sys
-import tempfile
-import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -37,7 +33,7 @@ from asp_dist.method_registry import METHODS
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
 from asp_dist.spec import CellSpec
-from asp_dist.sweep.packing import MANIFEST_KEY, Packing, resolve_packing
+from asp_dist.sweep.packing import MANIFEST_KEY, Packing
 from asp_dist.sweep.spaces import grid_hash
 
 SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
@@ -74,181 +70,6 @@ def sweep_dir_for(results: str | AnyPath, name: str) -> AnyPath:
         check_bucket(root)
         return root / name
     return Path(results).expanduser().resolve() / name
-
-
-def _remote_is_foreign(sweep_dir: S3Path) -> bool:
-    """An S3 prefix with objects but no manifest: not a sweep (hidden names such as a lease or a write
-    probe left by an interrupted start do not count)."""
-    if store.read_manifest(sweep_dir) is not None:
-        return False
-    return any(store.visible(p, sweep_dir) for p in sweep_dir.rglob("*"))
-
-
-def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool) -> None:
-    check_bucket(sweep_dir)
-    if _remote_is_foreign(sweep_dir):
-        raise SweepError(f"{sweep_dir} holds objects and is not a sweep (no manifest.json); choose another --name")
-    if write_probe:  # credentials that may read but not write are refused before anything else is written
-        probe = sweep_dir / f".write-test-{os.getpid()}-{int(time.time() * 1000)}"
-        try:
-            probe.write_bytes(b"")
-            probe.unlink(missing_ok=True)
-        except SpecError as e:
-            raise SweepError(f"results prefix {sweep_dir.parent} is not writable ({e}); choose another "
-                             f"with --results") from None
-
-
-def check_sweep_dir(sweep_dir: AnyPath) -> None:
-    """Refuse to start in a directory that holds something other than a sweep, or cannot be written."""
-    if isinstance(sweep_dir, S3Path):
-        _check_remote_sweep_dir(sweep_dir, write_probe=True)
-        return
-    if sweep_dir.exists() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
-        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
-    try:
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=sweep_dir, prefix=".write-test-"):
-            pass
-    except OSError as e:
-        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({e.strerror or e}); "
-                         f"choose another with --results") from None
-
-
-def _nearest_existing(path: Path) -> Path:
-    while not path.exists() and path != path.parent:
-        path = path.parent
-    return path
-
-
-def check_sweep_dir_readonly(sweep_dir: AnyPath) -> None:
-    """check_sweep_dir without touching the disk: what a run would refuse, refused before anything is written."""
-    if isinstance(sweep_dir, S3Path):
-        _check_remote_sweep_dir(sweep_dir, write_probe=False)
-        return
-    if sweep_dir.exists() and not sweep_dir.is_dir():
-        raise SweepError(f"{sweep_dir} exists and is not a directory; choose another --name or --results")
-    if sweep_dir.is_dir() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
-        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
-    existing = _nearest_existing(sweep_dir)
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        why = "not a directory" if not existing.is_dir() else "read-only"
-        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({existing} is {why}); "
-                         f"choose another with --results")
-
-
-def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float,
-                      connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
-    """The numbers of a run, refused before Ray is imported."""
-    for flag, value in (("--workers", workers), ("--max-failures", max_failures)):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise SweepError(f"{flag} must be an integer, got {value!r}")
-    if workers < 1:
-        raise SweepError(f"--workers must be >= 1, got {workers}")
-    if max_failures < 0:
-        raise SweepError(f"--max-failures must be >= 0, got {max_failures}")
-    for flag, value in (("--checkpoint-every", checkpoint_every_s), ("--connect-timeout", connect_timeout_s)):
-        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                and value > 0):
-            raise SweepError(f"{flag} must be > 0 seconds and finite, got {value}")
-
-
-# ---- the cluster address -------------------------------------------------------------------------
-def parse_address(address: str) -> tuple[str, int] | None:
-    """(host, port) of --address (HOST:PORT, [IPv6]:PORT or ray://HOST:PORT); None for "auto"."""
-    text = address.strip()
-    if text == "auto":
-        return None
-    if text.startswith("ray://"):
-        text = text[len("ray://"):]
-    host, sep, port = text.rpartition(":")
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise SweepError(f"--address {address!r}: write HOST:PORT of the cluster's head (e.g. 127.0.0.1:6379)")
-    return host, int(port)
-
-
-def _resolve(host: str, port: int, timeout_s: float) -> list[tuple]:
-    """getaddrinfo with a deadline: the resolver's own retries can take much longer than --connect-timeout."""
-    answer: list = []
-
-    def lookup() -> None:
-        try:
-            answer.append(socket.getaddrinfo(host, port, type=socket.SOCK_STREAM))
-        except OSError as e:
-            answer.append(e)
-
-    thread = threading.Thread(target=lookup, daemon=True)
-    thread.start()
-    thread.join(timeout_s)
-    if not answer:
-        raise TimeoutError(f"no answer from the resolver for {host!r}")
-    if isinstance(answer[0], OSError):
-        raise answer[0]
-    return answer[0]
-
-
-def check_address(address: str, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
-    """Refuse, within ``timeout_s``, a cluster address nothing answers on: resolve the head and open a TCP
-    connection to it, retrying while a head may still be starting. Needs no Ray, so it runs before Ray is
-    imported and before anything is written. ("auto" is Ray's to find; it is bounded by tune.ray_session.)"""
-    parsed = parse_address(address)
-    if parsed is None:
-        return
-    host, port = parsed
-    deadline = time.monotonic() + timeout_s
-    why = "no answer"
-    while (remaining := deadline - time.monotonic()) > 0:
-        try:
-            for family, kind, proto, _, sockaddr in _resolve(host, port, remaining):
-                with socket.socket(family, kind, proto) as sock:
-                    sock.settimeout(max(0.1, min(5.0, deadline - time.monotonic())))
-                    try:
-                        sock.connect(sockaddr)
-                        return
-                    except OSError as e:
-                        why = e.strerror or type(e).__name__
-        except socket.gaierror as e:
-            if e.errno != socket.EAI_AGAIN:  # an unknown host stays unknown: no point in waiting
-                raise SweepError(f"cannot reach the Ray cluster at {address}: unknown host {host!r} "
-                                 f"({e.strerror}); check --address") from None
-            why = e.strerror or "resolver failed"
-        except (OSError, TimeoutError) as e:
-            why = str(e) or type(e).__name__
-        time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
-    raise SweepError(f"cannot reach the Ray cluster at {address} within {timeout_s:g} s ({why}); "
-                     f"check --address, or raise --connect-timeout")
-
-
-# ---- signals -------------------------------------------------------------------------------------
-interrupted_by: int | None = None  # the last signal that interrupted a sweep (SIGTERM); None for Ctrl-C
-
-
-def _sigterm(signum, frame) -> None:
-    """SIGTERM is Ctrl-C: while a Tune run goes on, Tune's SIGINT handler (a graceful stop that saves the
-    experiment; a second signal interrupts at once), else KeyboardInterrupt."""
-    global interrupted_by
-    interrupted_by = signum
-    handler = signal.getsignal(signal.SIGINT)
-    if callable(handler) and handler is not signal.default_int_handler and not getattr(handler, "asp_interrupt", False):
-        handler(signal.SIGINT, frame)  # Tune's
-        return
-    raise KeyboardInterrupt  # also where SIGINT is ignored (a background job): SIGTERM must still stop the sweep
-
-
-@contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Within: SIGTERM stops the sweep as Ctrl-C does, at any stage, with the same cleanup (the lock,
-    Ray's processes). Only the main thread can own signals; elsewhere, and when already set, a no-op."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is _sigterm:
-        yield
-        return
-    global interrupted_by
-    interrupted_by = None
-    previous = signal.signal(signal.SIGTERM, _sigterm)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 # ---- lock ----------------------------------------------------------------------------------------
@@ -396,21 +217,6 @@ def _provenance(registry, names: list[str]) -> dict[str, dict[str, str]]:
     return out
 
 
-def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,
-                   packing: Packing | None = None) -> dict[str, Any]:
-    """The sweep's manifest (a new one, with `packing`, if it has none); refuses a grid that differs from
-    the stored one."""
-    existing = store.read_manifest(sweep_dir)
-    if existing is None:
-        return new_manifest(name, space, specs, packing)
-    digest, stored = grid_hash(specs), existing.get("grid_hash")
-    if stored != digest:
-        raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
-                         f"{existing.get('space')!r}, {len(existing['cells'])} cells, hash {stored}; "
-                         f"now {space!r}, {len(specs)} cells, hash {digest}); use another --name")
-    return existing
-
-
 def check_manifest_shape(manifest: dict[str, Any], where: AnyPath) -> None:
     """A manifest as new_manifest writes it: name, space and grid_hash as text, the cell ids and a resolved
     spec dict (with its domain and method) per cell. Anything else is refused in one line, never a KeyError."""
@@ -437,47 +243,6 @@ def read_sweep(results: str | AnyPath, name: str) -> tuple[AnyPath, dict[str, An
                          f"`asp-dist sweep SPACE --name {name}`")
     check_manifest_shape(manifest, sweep_dir)
     return sweep_dir, manifest
-
-
-def check_not_running(sweep_dir: AnyPath) -> None:
-    if isinstance(sweep_dir, S3Path):  # a silent lease (driver killed elsewhere) is waited out by the run itself
-        lease = _sweep_lease(sweep_dir)
-        state = lease.current()
-        live = state is not None and state.live(lease.ttl_s) and state.age_s <= 2 * lease.renew_s
-        holder = state.describe() if live else None
-    else:
-        holder = lock_holder(sweep_dir)
-    if holder is not None:
-        raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
-                         f"or use another --name")
-
-
-def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str,
-                    pack: str | None = None, pack_size: int | None = None) -> AnyPath:
-    """Everything `sweep` refuses about where it would run, checked without writing: the name, the
-    results dir, a directory that is not a sweep, a sweep started with another grid or packing, a
-    running sweep. The run checks them again under its lock (tune._run); this is the early, read-only
-    answer."""
-    sweep_dir = sweep_dir_for(results, name)
-    check_sweep_dir_readonly(sweep_dir)
-    manifest = store.read_manifest(sweep_dir)
-    resolve_packing(pack, pack_size, manifest)
-    if manifest is not None:
-        read_sweep(results, name)  # its manifest's shape
-        check_manifest(sweep_dir, name, specs, space)
-        check_not_running(sweep_dir)
-    return sweep_dir
-
-
-def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
-                     pack_size: int | None = None) -> tuple[str, list[CellSpec]]:
-    """Everything `resume` refuses, checked without writing; returns the sweep's space and specs."""
-    sweep_dir, manifest = read_sweep(results, name)
-    specs = specs_from_manifest(manifest)
-    resolve_packing(pack, pack_size, manifest)
-    check_sweep_dir_readonly(sweep_dir)
-    check_not_running(sweep_dir)
-    return manifest["space"], specs
 
 
 def specs_from_manifest(manifest: dict[str, Any]) -> list[CellSpec]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from asp_dist.results import store
 from asp_dist.spec import CellSpec
-from asp_dist.sweep import ledger
+from asp_dist.sweep import ledger, preflight
 from asp_dist.sweep.packing import check_packing
 from asp_dist.sweep.spaces import expand, space_file
 
@@ -34,7 +34,7 @@ class RunOptions:
 
     def check(self) -> None:
         """The numbers and the packing, refused in one line before anything is read or written."""
-        ledger.check_run_options(self.workers, self.max_failures, self.checkpoint_every_s, self.connect_timeout_s)
+        preflight.check_run_options(self.workers, self.max_failures, self.checkpoint_every_s, self.connect_timeout_s)
         check_packing(self.pack, self.pack_size)
 
 

@@ -137,7 +137,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                              f"token: RAY_AUTH_MODE=token and RAY_AUTH_TOKEN (or RAY_AUTH_TOKEN_PATH), see "
                              f"docs/sweeps.md, Security") from None
         finally:
-            # ray.init sets its own SIGTERM handler (sys.exit); put back the sweep's (ledger.sigterm_as_interrupt).
+            # ray.init sets its own SIGTERM handler (sys.exit); put back the sweep's (signals.sigterm_as_interrupt).
             if sigterm is not None:
                 signal.signal(signal.SIGTERM, sigterm)
         yield
@@ -156,7 +156,7 @@ def _signals_held(sigterm) -> Iterator[None]:
     ray.init installs SIGTERM handlers of its own (a driver's sys.exit, a node's drain-then-exit) that a
     SIGTERM during start-up would run inside Ray's code, where it was seen to vanish (the sweep went on).
     Here Ray's installer does nothing for the duration, a SIGTERM is only noted, and the sweep's own
-    handler (ledger.sigterm_as_interrupt) gets it as soon as Ray is up: the sweep stops as it does later,
+    handler (signals.sigterm_as_interrupt) gets it as soon as Ray is up: the sweep stops as it does later,
     with ray_session's cleanup. A no-op off the main thread or without a sweep handler."""
     if sigterm is None or not callable(sigterm):
         yield

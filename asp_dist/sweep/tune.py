@@ -31,7 +31,7 @@ experiment state and checkpoints go to ``<sweep>/tune/`` in the bucket through
 the trial's working directory under the Ray temp dir (node-local scratch) before Tune uploads it.
 
 Nothing is left behind: checkpoints are staged under the sweep's own ``tune/.ckpt-tmp/``; SIGTERM
-stops a sweep as Ctrl-C does (ledger.sigterm_as_interrupt); a reaper process ends the embedded
+stops a sweep as Ctrl-C does (signals.sigterm_as_interrupt); a reaper process ends the embedded
 Ray's processes within seconds when the driver dies, even by SIGKILL; and old session
 directories of the embedded Ray are pruned at start.
 """
@@ -55,7 +55,7 @@ from ray import tune
 from asp_dist.errors import DiskFull, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace
-from asp_dist.sweep import ledger
+from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
 from asp_dist.sweep.plan import Plan, RunOptions
@@ -240,10 +240,10 @@ def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], 
 
 class _InterruptMark:
     """SIGINT handler while Tune runs, until Tune installs its own: Tune puts the previous handler back
-    when (and only when) a SIGINT (or SIGTERM, ledger.sigterm_as_interrupt) made it stop, so finding
+    when (and only when) a SIGINT (or SIGTERM, signals.sigterm_as_interrupt) made it stop, so finding
     this mark back after fit() means that Tune stopped early, saved its state and returned."""
 
-    asp_interrupt = True  # ledger._sigterm: raise, do not call
+    asp_interrupt = True  # signals._sigterm: raise, do not call
 
     def __init__(self, previous):
         self.previous = previous
@@ -359,17 +359,17 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
         return ray_session(workers, address, options.ray_temp_dir, dashboard=options.dashboard,
                            connect_timeout_s=connect_timeout_s, stream=stream)
 
-    with ledger.sigterm_as_interrupt(), _disk_full_is_one_line(sweep_dir, name, results):
+    with signals.sigterm_as_interrupt(), _disk_full_is_one_line(sweep_dir, name, results):
         if address:  # a cluster that does not answer is refused before anything is written
-            ledger.check_sweep_dir_readonly(sweep_dir)
+            preflight.check_sweep_dir_readonly(sweep_dir)
             resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))
-            ledger.check_address(address, connect_timeout_s)
+            preflight.check_address(address, connect_timeout_s)
         # A cluster is joined before the sweep dir is written; the embedded Ray starts only if a cell is pending.
         with session() if address else nullcontext():
-            ledger.check_sweep_dir(sweep_dir)
+            preflight.check_sweep_dir(sweep_dir)
             with ledger.sweep_lock(sweep_dir, connect_timeout_s=connect_timeout_s):
                 packing = resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))  # refuses another one
-                manifest = ledger.check_manifest(sweep_dir, name, specs, space, packing)  # refuses a different grid
+                manifest = preflight.check_manifest(sweep_dir, name, specs, space, packing)  # refuses a different grid
                 if store.read_manifest(sweep_dir) is None:
                     store.write_manifest(sweep_dir, manifest)
                 if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch

@@ -1,0 +1,229 @@
+"""Pre-flight checks: everything a user can get wrong about a sweep, refused in one line before anything is
+written and before Ray is imported — the results directory (local or S3), the run's numbers, a cluster
+address that nothing answers on, a grid that differs from the stored one, a sweep that is running.
+
+`sweep` and `resume` run the read-only checks early (check_can_start, check_can_resume: the CLI's first
+answers) and the run repeats the writing ones under its lock (asp_dist.sweep.tune). No Ray import.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from asp_dist.errors import SpecError, SweepError
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath, S3Path, check_bucket
+from asp_dist.spec import CellSpec
+from asp_dist.sweep.ledger import (DEFAULT_CONNECT_TIMEOUT_S, _sweep_lease, lock_holder, new_manifest, read_sweep,
+                                   specs_from_manifest, sweep_dir_for)
+from asp_dist.sweep.packing import Packing, resolve_packing
+from asp_dist.sweep.spaces import grid_hash
+
+
+# ---- where the sweep lives -----------------------------------------------------------------------
+def _remote_is_foreign(sweep_dir: S3Path) -> bool:
+    """An S3 prefix with objects but no manifest: not a sweep (hidden names such as a lease or a write
+    probe left by an interrupted start do not count)."""
+    if store.read_manifest(sweep_dir) is not None:
+        return False
+    return any(store.visible(p, sweep_dir) for p in sweep_dir.rglob("*"))
+
+
+def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool) -> None:
+    check_bucket(sweep_dir)
+    if _remote_is_foreign(sweep_dir):
+        raise SweepError(f"{sweep_dir} holds objects and is not a sweep (no manifest.json); choose another --name")
+    if write_probe:  # credentials that may read but not write are refused before anything else is written
+        probe = sweep_dir / f".write-test-{os.getpid()}-{int(time.time() * 1000)}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink(missing_ok=True)
+        except SpecError as e:
+            raise SweepError(f"results prefix {sweep_dir.parent} is not writable ({e}); choose another "
+                             f"with --results") from None
+
+
+def check_sweep_dir(sweep_dir: AnyPath) -> None:
+    """Refuse to start in a directory that holds something other than a sweep, or cannot be written."""
+    if isinstance(sweep_dir, S3Path):
+        _check_remote_sweep_dir(sweep_dir, write_probe=True)
+        return
+    if sweep_dir.exists() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
+    try:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=sweep_dir, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({e.strerror or e}); "
+                         f"choose another with --results") from None
+
+
+def _nearest_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_sweep_dir_readonly(sweep_dir: AnyPath) -> None:
+    """check_sweep_dir without touching the disk: what a run would refuse, refused before anything is written."""
+    if isinstance(sweep_dir, S3Path):
+        _check_remote_sweep_dir(sweep_dir, write_probe=False)
+        return
+    if sweep_dir.exists() and not sweep_dir.is_dir():
+        raise SweepError(f"{sweep_dir} exists and is not a directory; choose another --name or --results")
+    if sweep_dir.is_dir() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+        raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
+    existing = _nearest_existing(sweep_dir)
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        why = "not a directory" if not existing.is_dir() else "read-only"
+        raise SweepError(f"results dir {sweep_dir.parent} is not writable ({existing} is {why}); "
+                         f"choose another with --results")
+
+
+def check_run_options(workers: int, max_failures: int, checkpoint_every_s: float,
+                      connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
+    """The numbers of a run, refused before Ray is imported."""
+    for flag, value in (("--workers", workers), ("--max-failures", max_failures)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SweepError(f"{flag} must be an integer, got {value!r}")
+    if workers < 1:
+        raise SweepError(f"--workers must be >= 1, got {workers}")
+    if max_failures < 0:
+        raise SweepError(f"--max-failures must be >= 0, got {max_failures}")
+    for flag, value in (("--checkpoint-every", checkpoint_every_s), ("--connect-timeout", connect_timeout_s)):
+        if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                and value > 0):
+            raise SweepError(f"{flag} must be > 0 seconds and finite, got {value}")
+
+
+# ---- the cluster address -------------------------------------------------------------------------
+def parse_address(address: str) -> tuple[str, int] | None:
+    """(host, port) of --address (HOST:PORT, [IPv6]:PORT or ray://HOST:PORT); None for "auto"."""
+    text = address.strip()
+    if text == "auto":
+        return None
+    if text.startswith("ray://"):
+        text = text[len("ray://"):]
+    host, sep, port = text.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise SweepError(f"--address {address!r}: write HOST:PORT of the cluster's head (e.g. 127.0.0.1:6379)")
+    return host, int(port)
+
+
+def _resolve(host: str, port: int, timeout_s: float) -> list[tuple]:
+    """getaddrinfo with a deadline: the resolver's own retries can take much longer than --connect-timeout."""
+    answer: list = []
+
+    def lookup() -> None:
+        try:
+            answer.append(socket.getaddrinfo(host, port, type=socket.SOCK_STREAM))
+        except OSError as e:
+            answer.append(e)
+
+    thread = threading.Thread(target=lookup, daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    if not answer:
+        raise TimeoutError(f"no answer from the resolver for {host!r}")
+    if isinstance(answer[0], OSError):
+        raise answer[0]
+    return answer[0]
+
+
+def check_address(address: str, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
+    """Refuse, within ``timeout_s``, a cluster address nothing answers on: resolve the head and open a TCP
+    connection to it, retrying while a head may still be starting. Needs no Ray, so it runs before Ray is
+    imported and before anything is written. ("auto" is Ray's to find; it is bounded by tune.ray_session.)"""
+    parsed = parse_address(address)
+    if parsed is None:
+        return
+    host, port = parsed
+    deadline = time.monotonic() + timeout_s
+    why = "no answer"
+    while (remaining := deadline - time.monotonic()) > 0:
+        try:
+            for family, kind, proto, _, sockaddr in _resolve(host, port, remaining):
+                with socket.socket(family, kind, proto) as sock:
+                    sock.settimeout(max(0.1, min(5.0, deadline - time.monotonic())))
+                    try:
+                        sock.connect(sockaddr)
+                        return
+                    except OSError as e:
+                        why = e.strerror or type(e).__name__
+        except socket.gaierror as e:
+            if e.errno != socket.EAI_AGAIN:  # an unknown host stays unknown: no point in waiting
+                raise SweepError(f"cannot reach the Ray cluster at {address}: unknown host {host!r} "
+                                 f"({e.strerror}); check --address") from None
+            why = e.strerror or "resolver failed"
+        except (OSError, TimeoutError) as e:
+            why = str(e) or type(e).__name__
+        time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+    raise SweepError(f"cannot reach the Ray cluster at {address} within {timeout_s:g} s ({why}); "
+                     f"check --address, or raise --connect-timeout")
+
+
+
+# ---- the grid and the lock ----------------------------------------------------------------------
+def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,
+                   packing: Packing | None = None) -> dict[str, Any]:
+    """The sweep's manifest (a new one, with `packing`, if it has none); refuses a grid that differs from
+    the stored one."""
+    existing = store.read_manifest(sweep_dir)
+    if existing is None:
+        return new_manifest(name, space, specs, packing)
+    digest, stored = grid_hash(specs), existing.get("grid_hash")
+    if stored != digest:
+        raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
+                         f"{existing.get('space')!r}, {len(existing['cells'])} cells, hash {stored}; "
+                         f"now {space!r}, {len(specs)} cells, hash {digest}); use another --name")
+    return existing
+
+
+def check_not_running(sweep_dir: AnyPath) -> None:
+    if isinstance(sweep_dir, S3Path):  # a silent lease (driver killed elsewhere) is waited out by the run itself
+        lease = _sweep_lease(sweep_dir)
+        state = lease.current()
+        live = state is not None and state.live(lease.ttl_s) and state.age_s <= 2 * lease.renew_s
+        holder = state.describe() if live else None
+    else:
+        holder = lock_holder(sweep_dir)
+    if holder is not None:
+        raise SweepError(f"sweep {sweep_dir.name!r} is already running ({holder}); wait for it to finish "
+                         f"or use another --name")
+
+
+def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str,
+                    pack: str | None = None, pack_size: int | None = None) -> AnyPath:
+    """Everything `sweep` refuses about where it would run, checked without writing: the name, the
+    results dir, a directory that is not a sweep, a sweep started with another grid or packing, a
+    running sweep. The run checks them again under its lock (tune._run); this is the early, read-only
+    answer."""
+    sweep_dir = sweep_dir_for(results, name)
+    check_sweep_dir_readonly(sweep_dir)
+    manifest = store.read_manifest(sweep_dir)
+    resolve_packing(pack, pack_size, manifest)
+    if manifest is not None:
+        read_sweep(results, name)  # its manifest's shape
+        check_manifest(sweep_dir, name, specs, space)
+        check_not_running(sweep_dir)
+    return sweep_dir
+
+
+def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
+                     pack_size: int | None = None) -> tuple[str, list[CellSpec]]:
+    """Everything `resume` refuses, checked without writing; returns the sweep's space and specs."""
+    sweep_dir, manifest = read_sweep(results, name)
+    specs = specs_from_manifest(manifest)
+    resolve_packing(pack, pack_size, manifest)
+    check_sweep_dir_readonly(sweep_dir)
+    check_not_running(sweep_dir)
+    return manifest["space"], specs
