@@ -1,7 +1,9 @@
 """The sweep service: a grid of cells run as Ray Tune trials (tune.py), results in the store.
 
     plan.py       what to run: the grid read and resolved once (Plan) and how (RunOptions)
-    ledger.py     checks before anything is written, the manifest, the lock, finished and failed cells
+    ledger.py     the sweep's directory, manifest, lock, finished and failed cells
+    preflight.py  what a run refuses before anything is written (directories, options, address, grid)
+    signals.py    SIGTERM as Ctrl-C
     packing.py    the units a trial runs: one cell, or a pack of cells trained as one model
     trial.py      the one Tune trial function (worker side): a unit trained and written
     tune.py       the driver: Tune experiments, restore, the progress callback, disk-full handling
