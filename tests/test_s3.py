@@ -513,6 +513,8 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     assert prefix + "manifest.json" in objects and prefix + "tune/current.json" in objects
     assert any(k.startswith(prefix + "tune/run-1/experiment_state-") for k in objects), "Tune's state is not in the bucket"
     assert not local_results(run.cwd, run.ray_temp), "result files on the local disk"
+    env_files = {"command.txt", "space.toml", "git.txt", "distributions.txt", "machine.json"}
+    assert {k.rsplit("/", 1)[1] for k in objects if k.startswith(prefix + "env/1/")} >= env_files  # provenance
 
     with pytest.MonkeyPatch.context() as mp:
         use_env(mp, s3.env)
@@ -524,6 +526,8 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     assert again.returncode == 0 and "18 already done" in again.stderr, again.stderr[-2000:]
     after = keys(s3, f"{run.results}/smoke/")
     assert {k: after[k] for k in cells} == {k: objects[k] for k in cells}, "a finished cell was rewritten"
+    assert {k: after[k] for k in objects if "/env/1/" in k} == {k: v for k, v in objects.items() if "/env/1/" in k}
+    assert any(k.startswith(prefix + "env/2/") for k in after), "the second run's environment was not recorded"
     status = cli(s3, "status", "smoke", "--results", run.results, cwd=run.cwd)
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"] and "not running" in status.stdout
 

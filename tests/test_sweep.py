@@ -47,7 +47,7 @@ from asp_dist.cli import main
 from asp_dist.results import store
 from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import rejected_path
-from asp_dist.sweep.spaces import expand
+from asp_dist.sweep.spaces import expand, space_file
 from asp_dist.training.row import schema as row_schema
 
 pytestmark = pytest.mark.slow
@@ -116,11 +116,21 @@ def test_smoke_sweep_end_to_end(smoke):
     assert df.groupby("trial")["base_key"].nunique().eq(1).all()
     assert len(list((sweep_dir / "bases").glob("*.pt"))) == 2, "one base per trial, shared by its 9 cells"
     assert "done" in proc.stderr and "ETA" in proc.stderr  # the counter line
-    # Running it again retrains nothing and touches no file.
+    # What the run ran with (asp_dist.sweep.provenance): the command, the space file, the Ray node.
+    first = sweep_dir / "env" / "1"
+    assert "sweep smoke" in (first / "command.txt").read_text()
+    assert (first / "space.toml").read_text() == space_file("smoke").read_text()
+    nodes = json.loads((first / "machine.json").read_text())["ray_nodes"]
+    assert len(nodes) == 1 and nodes[0]["address"] == "127.0.0.1" and nodes[0]["cpus"] >= 1
+    assert "torch==" in (first / "distributions.txt").read_text()
+    # Running it again retrains nothing and touches no file; it records its own environment beside.
     mtimes = {f: f.stat().st_mtime_ns for f in files}
+    env_mtimes = {f: f.stat().st_mtime_ns for f in first.iterdir()}
     again = cli("sweep", "smoke", "--results", str(results))
     assert again.returncode == 0 and "18 already done" in again.stderr
     assert {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)} == mtimes
+    assert {f: f.stat().st_mtime_ns for f in first.iterdir()} == env_mtimes
+    assert "ray_nodes" not in json.loads((sweep_dir / "env" / "2" / "machine.json").read_text())  # no Ray: none pending
     status = cli("status", "smoke", "--results", str(results))
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"]
 

@@ -227,6 +227,43 @@ def min_wilcoxon_p(n: int) -> float:
     return 2.0 / 2 ** n if n > 0 else 1.0
 
 
+# What a row records of the code and packages that made it (asp_dist.training.row, the sweep's columns).
+PROVENANCE_COLUMNS = ("code_revision", "asp_dist_version", "torch_version", "numpy_version", "python_version",
+                      "ray_version")
+
+
+def provenance_blocks(rows: pd.DataFrame) -> list[Block]:
+    """The report's Provenance section: the distinct code revisions and versions among the rows (per sweep),
+    with a warning where a sweep mixes them or has rows from a dirty tree."""
+    cols = [c for c in PROVENANCE_COLUMNS if c in rows]
+    if not cols:
+        return []
+    by = "sweep_id" if "sweep_id" in rows and rows["sweep_id"].notna().any() else None
+    records, warnings = [], []
+    for sweep, group in (rows.groupby(rows[by].fillna("(none)")) if by else [("all rows", rows)]):
+        for col in cols:
+            counts = group[col].fillna("unknown").astype(str).value_counts()
+            records.append({"sweep": sweep, "column": col, "rows": int(counts.sum()),
+                            "values": ", ".join(f"{v} ({n})" for v, n in sorted(counts.items()))})
+            if len(counts) > 1:
+                warnings.append(f"sweep {sweep} mixes {len(counts)} values of {col}: its rows were not all made "
+                                f"with the same code and packages")
+        dirty = group["code_revision"].astype(str).str.endswith("+dirty").sum() if "code_revision" in group else 0
+        if dirty:
+            warnings.append(f"sweep {sweep}: {dirty} row(s) from a dirty tree (uncommitted changes): the revision "
+                            f"alone does not say what ran; env/<n>/git.diff in the sweep directory does")
+    blocks: list[Block] = [Heading(2, "Provenance"),
+                           Text("Code revision and package versions recorded in the rows (value (rows)); each run "
+                                "of a sweep also records its command, space file, installed distributions, git "
+                                "state, CPU, threads and Ray nodes under `env/<n>/` in the sweep directory."),
+                           Table(pd.DataFrame(records))]
+    if warnings:
+        blocks.append(Text("\n".join(f"- **warning**: {w}" for w in warnings)))
+    else:
+        blocks.append(Text("One code revision and one version of each package in every sweep, none from a dirty tree."))
+    return blocks
+
+
 def figure_count_text(n: int) -> str:
     """How many figures the report holds, in words a reader (and the browser check) can count against."""
     if n == 0:
@@ -324,6 +361,7 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
             doc.add(Text(f"… and {len(missing) - 40} more."))
     if sources:
         doc.add(Text("Inputs: " + ", ".join(f"`{s}`" for s in sources)))
+    doc.add(*provenance_blocks(result.rows))
 
     doc.add(Heading(2, "Figures"), Text(figure_count_text(len(figures))), *(Plot(f) for f in figures))
 

@@ -45,12 +45,13 @@ class Plan:
     name: str
     space: str  # the space's name (a file's stem), as the manifest records it
     specs: list[CellSpec]
+    space_text: str | None = None  # the space file as read (None: a resume from the manifest)
 
     @classmethod
     def from_space(cls, space: str, name: str | None = None) -> "Plan":
         """A new (or continued) sweep of a space: tune_spaces/<space>.toml or a path."""
-        space_name = space_file(space).stem
-        return cls(name if name is not None else space_name, space_name, expand(space))
+        path = space_file(space)
+        return cls(name if name is not None else path.stem, path.stem, expand(space), path.read_text())
 
     @classmethod
     def from_sweep(cls, results: str | Path, name: str) -> "Plan":

@@ -50,16 +50,18 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
+import ray
 from ray import tune
 
-from asp_dist.errors import DiskFull, is_disk_full
+from asp_dist.errors import DiskFull, StorageError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace
-from asp_dist.sweep import ledger, preflight, signals
+from asp_dist.sweep import ledger, preflight, provenance, signals
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
+from asp_dist.sweep.spaces import grid_hash
 from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
 from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
     CKPT_TMP, DISK_FULL, TUNE_DIR, config_cells, train_cell, trial_name, unit_config, unit_from_config)
@@ -345,6 +347,16 @@ def _disk_full_is_one_line(sweep_dir: AnyPath, name: str, results: str | Path) -
                        f"then: asp-dist resume {name} --results {results}") from None
 
 
+def _record_provenance(sweep_dir: AnyPath, plan: Plan, stream: TextIO, ray_nodes: list | None = None) -> None:
+    """env/<n>/ of this run (asp_dist.sweep.provenance); a record that cannot be written is a warning, never
+    a stop (a full disk is the run's to report, when it writes what counts)."""
+    try:
+        provenance.record(sweep_dir, space_text=plan.space_text, ray_nodes=ray_nodes,
+                          grid=f"space {plan.space}, {len(plan.specs)} cells, grid hash {grid_hash(plan.specs)}")
+    except (OSError, StorageError) as e:
+        stream.write(f"asp-dist: warning: the run's environment was not recorded under {sweep_dir}/env ({e})\n")
+
+
 def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
     specs, space, name = plan.specs, plan.space, plan.name
     results, workers, address = options.results, options.workers, options.address
@@ -392,7 +404,10 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)
                     _DISK_FULL.clear()
                     with nullcontext() if address else session():
+                        _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes())
                         _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
+                else:
+                    _record_provenance(sweep_dir, plan, stream)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
                 done, failed = ledger.finished_and_failed(sweep_dir, grid, remember=True)
