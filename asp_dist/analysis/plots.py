@@ -5,9 +5,9 @@
 - metric vs a numeric knob (VAE latent size, signaling skew …), one panel per paired count;
 - the effect of ASP (median paired difference ASP − other, bootstrap 95 % interval) against a
   numeric knob — for the signaling game, against the token-distribution skew;
-- scatters from rows' ``figure_data``: VAE 2-D latent codes coloured by digit
-  (``{"kind": "latent2d", "base", "new", "labels"}``) and the PCA of lever communication
-  vectors coloured by agent ID (``{"kind": "comm", "base", "new", "ids"}``);
+- the figures only a domain can draw, from its rows' ``figure_data`` (Domain.draw_figures; the VAE's latent
+  codes and reconstructions, the levers' communication PCA), with the generic pieces here (scatter_figures,
+  pick_rows, save_figure);
 - learning curves (a sweep directory's curves/ dataset, asp_dist.results.store.read_curves): a
   few key series (D(fake), discriminator loss and accuracy on fake, the probe metrics) against
   the training step, one panel per paired count, median line and quartile band over trials per
@@ -86,7 +86,8 @@ def _maybe_log_y(axes: list[plt.Axes], low: pd.Series, high: pd.Series) -> None:
             ax.set_yscale("log")
 
 
-def _save(fig: plt.Figure, out_dir: Path, stem: str) -> list[Path]:
+def save_figure(fig: plt.Figure, out_dir: Path, stem: str) -> list[Path]:
+    """Write `fig` as PNG and SVG under `out_dir` and close it."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for ext in ("png", "svg"):
@@ -108,7 +109,8 @@ def _panels(n: int) -> tuple[plt.Figure, list[plt.Axes]]:
     return fig, flat[:n]
 
 
-def _safe(text: str) -> str:
+def safe_name(text: str) -> str:
+    """`text` as a file stem."""
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)[:80]
 
 
@@ -151,7 +153,7 @@ def plot_metric_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Fi
     return Figure(stem, f"{domain}: {result.config.metric} against paired count",
                   "Median (line) and first–third quartile band per method; "
                   + ("one panel per condition." if len(conditions) > 1 else ""),
-                  _save(fig, out_dir, stem))
+                  save_figure(fig, out_dir, stem))
 
 
 # ---- metric vs a numeric knob ---------------------------------------------------------------------
@@ -202,10 +204,10 @@ def plot_metric_vs_knob(result: StatsResult, domain: str, knob: str, out_dir: Pa
         axes[0].set_ylabel(y_label(domain, result.config.metric, layout.higher_is_better))
         axes[0].legend(fontsize=8)
         fig.suptitle(f"{domain}: {result.config.metric} against {knob} (median and quartiles)", fontsize=11)
-        stem = _safe(f"{domain}_metric_vs_{knob}" + (f"_{suffix}" if suffix else ""))
+        stem = safe_name(f"{domain}_metric_vs_{knob}" + (f"_{suffix}" if suffix else ""))
         figures.append(Figure(stem, f"{domain}: {result.config.metric} against {knob}" + (f" ({suffix})" if suffix else ""),
                               "Median and quartile band per method, one panel per paired count.",
-                              _save(fig, out_dir, stem)))
+                              save_figure(fig, out_dir, stem)))
     return figures
 
 
@@ -254,15 +256,16 @@ def plot_asp_effect_vs_knob(result: StatsResult, domain: str, knob: str, out_dir
     axes[0].set_ylabel(f"median paired difference in\n{unit} ({better})")
     axes[0].legend(fontsize=7)
     fig.suptitle(f"{domain}: effect of ASP against {knob} (bootstrap 95 % interval over trials)", fontsize=11)
-    stem = _safe(f"{domain}_asp_effect_vs_{knob}")
+    stem = safe_name(f"{domain}_asp_effect_vs_{knob}")
     return Figure(stem, f"{domain}: effect of ASP against {knob}",
                   "Median over trials of the paired difference ASP − other method at the same (trial, paired), "
-                  "with a percentile-bootstrap 95 % interval.", _save(fig, out_dir, stem))
+                  "with a percentile-bootstrap 95 % interval.", save_figure(fig, out_dir, stem))
 
 
-# ---- scatters from figure_data --------------------------------------------------------------------
+# ---- figures a domain draws from its rows' figure_data ------------------------------------------------
 
 def _figure_payloads(rows: pd.DataFrame) -> list[tuple[dict, dict]]:
+    """(row, payload) of every row whose figure_data is a JSON object with a "kind"."""
     out = []
     if "figure_data" not in rows:
         return out
@@ -271,7 +274,7 @@ def _figure_payloads(rows: pd.DataFrame) -> list[tuple[dict, dict]]:
             data = json.loads(rec["figure_data"]) if isinstance(rec["figure_data"], str) else rec["figure_data"]
         except ValueError:
             continue
-        if isinstance(data, dict) and data.get("kind") in ("latent2d", "comm", "vae_recon"):
+        if isinstance(data, dict) and isinstance(data.get("kind"), str):
             out.append((rec, data))
     return out
 
@@ -292,17 +295,39 @@ def _scatter(ax: plt.Axes, points: np.ndarray, colors: np.ndarray, title: str) -
 
 
 def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], list[str]]:
-    """Latent and communication scatters: base, then ASP (or the only method) at up to 4 paired counts."""
+    """The figures each domain draws from its rows' figure_data (Domain.draw_figures: VAE latents and
+    reconstructions, the levers' communication PCA), domain by domain; the core names no kind."""
+    from asp_dist.domains import DOMAINS
+
+    by_domain: dict[str, list[tuple[dict, dict]]] = {}
+    for rec, data in _figure_payloads(result.rows):
+        by_domain.setdefault(str(rec["domain"]), []).append((rec, data))
     figures, notes = [], []
-    payloads = _figure_payloads(result.rows)
-    by_key: dict[tuple, list[tuple[dict, dict]]] = {}
+    for domain, payloads in sorted(by_domain.items()):
+        card = DOMAINS.get(domain)
+        if card is None:
+            notes.append(f"figure_data of {domain} not drawn: the domain is not installed here")
+            continue
+        drawn, more = card.draw_figures(payloads, out_dir)
+        figures += drawn
+        notes += more
+    return figures, notes
+
+
+def scatter_figures(payloads: list[tuple[dict, dict]], out_dir: Path, *, kind: str, color_key: str,
+                    color_label: str, what: str, pca: bool = False) -> tuple[list[Figure], list[str]]:
+    """For a domain's figure_data of `kind` (``{"kind", "base", "new", <color_key>}``: points of the base and the
+    new agents, one colour index 0-9 per point): per condition, the base and ASP (or the only method) at up to
+    4 paired counts of the lowest trial, side by side; `pca`: each panel projected on its first two principal
+    components. A payload that does not fit is a note, not an error."""
+    figures, notes = [], []
+    by_cond: dict[tuple, list[tuple[dict, dict]]] = {}
     for rec, data in payloads:
-        if data["kind"] in ("latent2d", "comm"):
-            by_key.setdefault((rec["domain"], data["kind"], rec["condition"]), []).append((rec, data))
-    for (domain, kind, cond), items in sorted(by_key.items())[:MAX_FIGURES_PER_KIND]:
-        color_key = "labels" if kind == "latent2d" else "ids"
+        if data.get("kind") == kind:
+            by_cond.setdefault((rec["domain"], rec["condition"]), []).append((rec, data))
+    for (domain, cond), items in sorted(by_cond.items())[:MAX_FIGURES_PER_KIND]:
         try:
-            trial, prefer = _pick_rows(items, 4)
+            trial, prefer = pick_rows(items, 4)
             first = prefer[0][1]
             panels = [("Base model", np.asarray(first["base"], float), np.asarray(first[color_key]))]
             for rec, data in prefer:
@@ -313,24 +338,21 @@ def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], 
             for ax, (title, pts, colors) in zip(axes[0], panels):
                 if pts.ndim != 2 or len(pts) != len(colors):
                     raise ValueError(f"{title}: {pts.shape} points but {len(colors)} colours")
-                sc = _scatter(ax, pts if kind == "latent2d" else _pca2(pts), colors, title)
+                sc = _scatter(ax, _pca2(pts) if pca else pts, colors, title)
             cbar = fig.colorbar(sc, ax=list(axes[0]), ticks=range(10), fraction=0.02)
-            cbar.set_label("digit" if kind == "latent2d" else "agent ID")
+            cbar.set_label(color_label)
         except (KeyError, ValueError, TypeError) as err:
             plt.close("all")
             notes.append(f"figure_data of {domain} ({kind}, {cond}) not drawn: {err}")
             continue
-        what = "2-D latent codes coloured by digit" if kind == "latent2d" else \
-            "PCA (first two components) of communication vectors coloured by agent ID"
         fig.suptitle(f"{domain}, trial {trial}" + (f", {cond}" if cond != "all" else "") + f": {what}", fontsize=10)
-        stem = _safe(f"{domain}_{kind}_{cond}")
+        stem = safe_name(f"{domain}_{kind}_{cond}")
         figures.append(Figure(stem, f"{domain}: {what}", f"Trial {trial}; each panel projected on its own.",
-                              _save(fig, out_dir, stem)))
-    recon, more = plot_reconstructions(payloads, out_dir)
-    return figures + recon, notes + more
+                              save_figure(fig, out_dir, stem)))
+    return figures, notes
 
 
-def _pick_rows(items: list[tuple[dict, dict]], most: int) -> tuple[int, list[tuple[dict, dict]]]:
+def pick_rows(items: list[tuple[dict, dict]], most: int) -> tuple[int, list[tuple[dict, dict]]]:
     """Rows of the lowest trial, ASP preferred, at up to `most` paired counts spread over the range."""
     trial = min(int(r["trial"]) for r, _ in items)
     items = [(r, d) for r, d in items if int(r["trial"]) == trial]
@@ -338,49 +360,6 @@ def _pick_rows(items: list[tuple[dict, dict]], most: int) -> tuple[int, list[tup
     if len(prefer) > most:
         prefer = [prefer[i] for i in np.linspace(0, len(prefer) - 1, most).round().astype(int)]
     return trial, prefer
-
-
-def plot_reconstructions(payloads: list[tuple[dict, dict]], out_dir: Path) -> tuple[list[Figure], list[str]]:
-    """VAE reconstructions of one test image per digit: original, base, and the two mixed pairings."""
-    figures, notes = [], []
-    by_key: dict[tuple, list[tuple[dict, dict]]] = {}
-    for rec, data in payloads:
-        if isinstance(data.get("recon"), dict):
-            by_key.setdefault((rec["domain"], rec["condition"]), []).append((rec, data["recon"]))
-    for (domain, cond), items in sorted(by_key.items())[:MAX_FIGURES_PER_KIND]:
-        try:
-            trial, chosen = _pick_rows(items, 3)
-            first = chosen[0][1]
-            side = int(first.get("side", 28))
-            lines = [("original", first["original"]), ("base → base", first["base"])]
-            for rec, r in chosen:
-                tag = f"{rec['treatment'].upper()}+{rec['paired']}"
-                lines.append((f"{tag}: base enc → new dec", r["base_encoder_new_decoder"]))
-                lines.append((f"{tag}: new enc → base dec", r["new_encoder_base_decoder"]))
-            cols = len(first["original"])
-            # One mosaic image (rows of digits) instead of one axes per digit: far cheaper to draw and save.
-            mosaic = np.vstack([np.hstack([np.asarray(images[j], dtype=float).reshape(side, side) for j in range(cols)])
-                                for _, images in lines])
-            fig, ax = plt.subplots(figsize=(0.75 * cols + 2.2, 0.75 * len(lines) + 0.6), layout="constrained")
-            ax.imshow(mosaic, cmap="gray", vmin=0, vmax=255)
-            ax.set_yticks([side * (i + 0.5) for i in range(len(lines))])
-            ax.set_yticklabels([name for name, _ in lines], fontsize=7)
-            ax.set_xticks([side * (j + 0.5) for j in range(cols)])
-            ax.set_xticklabels([str(v) for v in first.get("labels", range(cols))], fontsize=8)
-            ax.xaxis.tick_top()
-            for k in range(1, len(lines)):
-                ax.axhline(k * side - 0.5, color="white", linewidth=1)
-        except (KeyError, ValueError, TypeError, IndexError) as err:
-            plt.close("all")
-            notes.append(f"reconstructions of {domain} ({cond}) not drawn: {err}")
-            continue
-        fig.suptitle(f"{domain}, trial {trial}" + (f", {cond}" if cond != "all" else "")
-                     + ": reconstructions of one test image per digit", fontsize=10)
-        stem = _safe(f"{domain}_reconstructions_{cond}")
-        figures.append(Figure(stem, f"{domain}: reconstructions" + (f" ({cond})" if cond != "all" else ""),
-                              "Rows: original test image, the base VAE, and for ASP at a few paired counts the two "
-                              "mixed pairings the metric scores.", _save(fig, out_dir, stem)))
-    return figures, notes
 
 
 # ---- learning curves --------------------------------------------------------------------------
@@ -487,13 +466,13 @@ def plot_curves(result: StatsResult, curves: pd.DataFrame, domain: str, out_dir:
         n_trials = int(cs.drop_duplicates("cell_id")["trial"].nunique())
         fig.suptitle(f"{domain}{where}: {series} during training (median and quartiles over {n_trials} trials)",
                      fontsize=11)
-        stem = _safe(f"{domain}_curve_{series}" + (f"_{cond}" if cond != "all" else ""))
+        stem = safe_name(f"{domain}_curve_{series}" + (f"_{cond}" if cond != "all" else ""))
         figures.append(Figure(stem, f"{domain}: learning curve of {series}" + (f" ({cond})" if cond != "all" else ""),
                               "Median over trials (line) and first–third quartile band per method against the "
                               "training step, one panel per paired count."
                               + (" Probe values are a cheap evaluation on a tenth of the evaluation episodes, "
                                  "recorded at about ten points per cell." if series.startswith("probe_") else ""),
-                              _save(fig, out_dir, stem)))
+                              save_figure(fig, out_dir, stem)))
     return figures, notes
 
 

@@ -18,7 +18,7 @@ import pandas as pd
 from asp_dist.analysis.job import StatsResult
 from asp_dist.analysis.layout import condition_key, treatment_order
 from asp_dist.analysis.paper import knob_label
-from asp_dist.analysis.plots import MAX_PANELS, Figure, _panels, _save, _style, _use_log2, plt
+from asp_dist.analysis.plots import MAX_PANELS, Figure, _panels, _style, _use_log2, plt, save_figure
 
 NORM_LABEL = "normalised score\n(0 = PC with least paired data, 1 = base pair's self-play)"
 
@@ -57,7 +57,7 @@ def plot_iqm_vs_paired(result: StatsResult, domain: str, out_dir: Path) -> Figur
     stem = f"{domain}_iqm_vs_paired"
     return Figure(stem, f"{domain}: sample efficiency (IQM of the normalised score against paired count)",
                   "Interquartile mean over trials per method and paired count, 95 % percentile-bootstrap band; "
-                  "the normalisation is in stats/normalisation.md.", _save(fig, out_dir, stem))
+                  "the normalisation is in stats/normalisation.md.", save_figure(fig, out_dir, stem))
 
 
 def _intervals(ax: plt.Axes, labels: list[str], points, lows, highs, colors) -> None:
@@ -93,7 +93,7 @@ def plot_aggregate(result: StatsResult, out_dir: Path) -> Figure | None:
     stem = "rliable_aggregate"
     return Figure(stem, "Aggregate: IQM of the normalised score",
                   "Runs pooled over the tasks (domain, condition, paired count) of each domain's paired range; "
-                  "the interval resamples trials within every task.", _save(fig, out_dir, stem))
+                  "the interval resamples trials within every task.", save_figure(fig, out_dir, stem))
 
 
 def plot_profiles(result: StatsResult, out_dir: Path) -> Figure | None:
@@ -120,7 +120,7 @@ def plot_profiles(result: StatsResult, out_dir: Path) -> Figure | None:
     stem = "rliable_profiles"
     return Figure(stem, "Performance profiles of the normalised score",
                   "Fraction of runs whose normalised score exceeds τ; 0 = PC with the least paired data, "
-                  "1 = the base pair's own self-play.", _save(fig, out_dir, stem))
+                  "1 = the base pair's own self-play.", save_figure(fig, out_dir, stem))
 
 
 def plot_improvement(result: StatsResult, out_dir: Path) -> Figure | None:
@@ -143,7 +143,7 @@ def plot_improvement(result: StatsResult, out_dir: Path) -> Figure | None:
     stem = "rliable_improvement"
     return Figure(stem, "Probability of improvement",
                   "Unpaired: P(X > Y) + ½ P(X = Y) over runs of the same task, averaged over tasks (rliable). "
-                  "Paired: the same over blocks (same base, data and initial weights).", _save(fig, out_dir, stem))
+                  "Paired: the same over blocks (same base, data and initial weights).", save_figure(fig, out_dir, stem))
 
 
 def plot_rliable(result: StatsResult, out_dir: str | Path) -> list[Figure]:

@@ -133,19 +133,34 @@ class Domain(ABC):
         Python's module cache makes the second call a dictionary lookup, and a domain stays picklable."""
         return importlib.import_module(f"{type(self).__module__}.game")
 
+    def _sibling(self, name: str) -> ModuleType | None:
+        """The module `name` of the card's package, imported on first use as `game` is; None where the
+        package has none (or the card is not in a package)."""
+        full = f"{type(self).__module__}.{name}"
+        try:
+            if importlib.util.find_spec(full) is None:
+                return None
+        except ModuleNotFoundError:  # the card's module is not a package
+            return None
+        return importlib.import_module(full)
+
     @property
     def trainers(self) -> tuple[type, ...]:
         """This domain's own trainers, fastest first (asp_dist.training.engines: classes with their
         capabilities as attributes; the reference Trainer, which trains any cell alone, follows them):
-        ``TRAINERS`` of the module ``trainers`` of the card's package, imported on first use as `game` is,
-        or () where the package has none. A domain written as one module overrides this."""
-        name = f"{type(self).__module__}.trainers"
-        try:
-            if importlib.util.find_spec(name) is None:
-                return ()
-        except ModuleNotFoundError:  # the card's module is not a package
-            return ()
-        return tuple(importlib.import_module(name).TRAINERS)
+        ``TRAINERS`` of the module ``trainers`` of the card's package, or () where the package has none.
+        A domain written as one module overrides this."""
+        module = self._sibling("trainers")
+        return tuple(module.TRAINERS) if module is not None else ()
+
+    def draw_figures(self, payloads: list[tuple[dict, dict]], out_dir: Any) -> tuple[list, list[str]]:
+        """The figures only this domain can draw, from its rows' figure_data (`payloads`: (row, decoded
+        figure_data) pairs of its rows, every method and condition), written under `out_dir`: a list of
+        asp_dist.analysis.plots.Figure and notes on what could not be drawn. Default: ``draw(payloads,
+        out_dir)`` of the module ``figures`` of the card's package (the analysis helpers there:
+        scatter_figures, pick_rows, save_figure), or nothing."""
+        module = self._sibling("figures")
+        return module.draw(payloads, out_dir) if module is not None else ([], [])
 
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""

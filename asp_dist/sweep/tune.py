@@ -406,10 +406,10 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                     with nullcontext() if address else session():
                         _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes())
                         _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
-                else:
-                    _record_provenance(sweep_dir, plan, stream)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
+                else:
+                    _record_provenance(sweep_dir, plan, stream)
                 done, failed = ledger.finished_and_failed(sweep_dir, grid, remember=True)
                 counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
                 counter.finish()
