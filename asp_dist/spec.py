@@ -44,9 +44,9 @@ class _CommonKnobs:
     """The knobs every cell has, and every method of CellSpec; CellSpec adds the domains' knobs (below)."""
 
     # --- identity of the cell -------------------------------------------------------------
-    # The default names a built-in domain only because specs, spaces and tests written before domains were
-    # plugins leave it out; nothing else in the core depends on it.
-    domain: str = knob("signaling", "Domain, as registered (asp-dist fields lists them; default: signaling).")
+    # Its default is the registered domain that says `default_for_specs` (CellSpec below): specs and spaces
+    # written before domains were plugins leave the domain out. This module names no domain.
+    domain: str = knob(None, "Domain, as registered (asp-dist fields lists them).")
     method: str = knob("asp", "Method, as registered: pc (paired only) | osp (self-play + paired) | asp (osp + "
                               "adversary) | a plugin's (asp_dist.method_registry).")
     paired: int = knob(0, "Number of paired (input, output) examples of the base convention, |P|.")
@@ -351,7 +351,13 @@ def _knob_field(k: Any) -> tuple[str, Any, Any]:
 
 
 _KNOBS = _domain_knobs()
-CellSpec = make_dataclass("CellSpec", [_knob_field(k) for k in _KNOBS], bases=(_CommonKnobs,), frozen=True,
+# The domain of a spec that names none: the registered domain whose card says default_for_specs (the built-in
+# signaling game), or None, and then a spec must name its domain.
+DEFAULT_DOMAIN = next((name for name in sorted(DOMAINS) if getattr(DOMAINS.get(name), "default_for_specs", False)),
+                      None)
+_DOMAIN_FIELD = ("domain", str, knob(DEFAULT_DOMAIN, "Domain, as registered (asp-dist fields lists them)."))
+CellSpec = make_dataclass("CellSpec", [_DOMAIN_FIELD, *(_knob_field(k) for k in _KNOBS)], bases=(_CommonKnobs,),
+                          frozen=True,
                           namespace={"__module__": __name__, "__doc__": "Every knob of one training cell: the "
                                      "common ones (_CommonKnobs) and each registered domain's (Domain.knobs)."})
 CHOICES.update({k.name: k.choices for k in _KNOBS if k.choices})

@@ -34,7 +34,7 @@ CASES = {
     "levers-pack21": ("paper-levers", 21, 400, None, None),
 }
 BASE = dict(base_train_steps=20, base_max_attempts=1, eval_episodes=16)
-NO_BAR = {"particles": {"particles_accept_return": -1e9}, "levers": {"levers_accept_reward": -1e9}, "vae": {}}
+NO_BAR = {"particles": {"particles_accept_return": 0.0}, "levers": {"levers_accept_reward": 0.0}, "vae": {}}
 
 
 def child(case: str) -> dict:

@@ -108,6 +108,9 @@ class Domain(ABC):
     # Spec fields besides the base's, paired count and |U| that shape U (what unpaired() returns), so
     # that a cache of U keys on them: e.g. the VAE's adversary input (μ or sampled z).
     unpaired_fields: tuple[str, ...] = ()
+    # True for the one domain a spec that names no domain belongs to (CellSpec's default `domain`): the built-in
+    # signaling game, for specs and spaces written before the domain had to be named. A plugin leaves it False.
+    default_for_specs: bool = False
     # Extra keyword arguments for the Adam optimisers of the new agents and the discriminators,
     # e.g. {"fused": True}: one kernel for all parameters, several times faster per update on CPU
     # when a domain has many small parameter tensors and tiny batches.

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 class SignalingDomain(GameDomain):
     name = "signaling"
+    default_for_specs = True  # CellSpec(...) without a domain is a signaling cell (as before domains were plugins)
     channels = ("token",)
     accept_field = None
     paper = PaperFacts(
