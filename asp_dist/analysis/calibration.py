@@ -22,15 +22,16 @@ import pandas as pd
 from asp_dist.analysis.layout import NOT_KNOBS
 from asp_dist.analysis.paper import paper_paired_ranges
 from asp_dist.analysis.rank_tests import friedman, mean_ranks
-from asp_dist.domains import get_domain
+from asp_dist.domains import DOMAINS, get_domain
 from asp_dist.spec import CellSpec
 
 METHODS = ("pc", "osp", "asp")
 # Knobs that only shape the adversary: PC and OSP cells record them at 0 / their default, so a
-# protocol ignores them when it looks for an ASP setting's PC and OSP cells.
+# protocol ignores them when it looks for an ASP setting's PC and OSP cells. A domain's own are the fields
+# that shape its unpaired data (Domain.unpaired_fields: the VAE's adversary input).
 ASP_ONLY = frozenset({"lambda_unpaired", "adversary_loss", "lambda_unpaired_schedule", "lambda_schedule_frac",
                       "disc_steps", "disc_lr", "disc_hidden", "disc_layers", "unpaired_size", "unpaired_batch",
-                      "vae_adversary_input"})
+                      *(f for name in DOMAINS for f in DOMAINS[name].unpaired_fields)})
 TIE = 0.05
 POWER_SIZES = (10, 15, 20, 30, 40, 60, 80, 100)
 # Columns a row carries that are not knobs of what was trained.
