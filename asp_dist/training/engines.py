@@ -28,7 +28,7 @@ from typing import Callable, Sequence
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
-from asp_dist.training.pipeline import CellResult, run_unit
+from asp_dist.training.pipeline import CellResult, one_domain, run_unit
 from asp_dist.training.trainer import Trainer
 
 REFERENCE = Trainer
@@ -82,12 +82,10 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict | None = None, curves: bo
     specs = [s.resolved() for s in specs]
     if not specs:
         return []
-    domains = sorted({s.domain for s in specs})
-    if len(domains) > 1:
-        raise ValueError(f"a pack holds cells of one domain, got {', '.join(domains)}")
+    domain = one_domain(specs)
     trainer = pack_trainer(specs[0])
     if trainer is None:
-        raise ValueError(f"domain {domains[0]!r} has no packed trainer that supports {specs[0].cell_id}")
+        raise ValueError(f"domain {domain!r} has no packed trainer that supports {specs[0].cell_id}")
     return run_unit(trainer, specs, bases=bases, curves=curves, progress=progress, checkpoint=checkpoint,
                     restore=restore, checkpoint_every_s=checkpoint_every_s,
                     checkpoint_every_steps=checkpoint_every_steps)

@@ -113,6 +113,14 @@ def upgrade_checkpoint(state: dict) -> dict:
             "cell_ids": [state.get("cell_id")], "trainer": state["trainer"], "timings": [state.get("timings", {})]}
 
 
+def one_domain(specs: Sequence[CellSpec]) -> str:
+    """The one domain of a unit's cells (ValueError when they mix domains: a pack never does)."""
+    domains = sorted({s.domain for s in specs})
+    if len(domains) > 1:
+        raise ValueError(f"a pack holds cells of one domain, got {', '.join(domains)}")
+    return domains[0]
+
+
 def generator_from_state(state: torch.Tensor) -> torch.Generator:
     """A new CPU generator in the given state (the state itself is not shared)."""
     gen = torch.Generator()
@@ -144,10 +152,7 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
     specs = [s.resolved() for s in specs]
     if not specs:
         return []
-    domains = sorted({s.domain for s in specs})
-    if len(domains) > 1:
-        raise ValueError(f"a pack holds cells of one domain, got {', '.join(domains)}")
-    domain = get_domain(domains[0])
+    domain = get_domain(one_domain(specs))
     bases = dict(bases or {})
     results = [CellResult(spec) for spec in specs]
     timers = [PhaseTimer() for _ in specs]
