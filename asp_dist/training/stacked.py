@@ -232,17 +232,24 @@ class PackRecords:
 
 class PackedTrainer(PackRecords):
     """Base of a domain's packed trainer: its capabilities as asp_dist.training.engines reads them. A
-    subclass sets `supports` and `pack_key` (static methods), and `lone = True` where a single cell is
+    subclass sets `supports` (a static method) and `shared` (its pack key's fields), and `lone = True` where a single cell is
     faster as a one-member pack of it than on the domain's other trainers; `engine` is its class name."""
 
     engine = "packed"  # each subclass: its own name (__init_subclass__)
     packs = True
     lone = False
     in_sweeps = True
+    shared: tuple[str, ...] = ()  # the spec fields every member shares (tensor shapes, the loop's length)
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         cls.engine = cls.__name__
+
+    @classmethod
+    def pack_key(cls, spec: CellSpec) -> tuple:
+        """Cells with equal keys can share a pack: their values of `shared`."""
+        spec = spec.resolved()
+        return tuple(getattr(spec, name) for name in cls.shared)
 
     @classmethod
     def build(cls, specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence):

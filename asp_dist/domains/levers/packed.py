@@ -122,11 +122,6 @@ def supports(spec: CellSpec) -> bool:
     return spec.resolved().domain == "levers"
 
 
-def pack_key(spec: CellSpec) -> tuple:
-    """Cells with equal keys can share a pack."""
-    spec = spec.resolved()
-    return tuple(getattr(spec, name) for name in SHARED)
-
 
 @dataclass(kw_only=True)
 class Member(PackMember):
@@ -149,7 +144,7 @@ class PackedLeverTrainer(PackedTrainer):
     # (3.0x the reference Trainer: docs/performance.md).
     lone = True
     supports = staticmethod(supports)
-    pack_key = staticmethod(pack_key)
+    shared = SHARED  # the pack key (PackedTrainer.pack_key)
     member_order = staticmethod(asp_members_first)  # their rows of the pack are a prefix
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
@@ -585,3 +580,6 @@ class PackedLeverTrainer(PackedTrainer):
         self.r_rew.copy_(replay["reward"])
         self.pos, self.filled = replay["pos"], replay["filled"]
         self._load_state(state)
+
+
+pack_key = PackedLeverTrainer.pack_key  # cells with equal keys can share a pack

@@ -102,11 +102,6 @@ def supports(spec: CellSpec) -> bool:
     return spec.domain == "particles" and spec.particles_replay_size == 0 and spec.particles_paired_listener
 
 
-def pack_key(spec: CellSpec) -> tuple:
-    """Cells with equal keys can share a pack."""
-    spec = spec.resolved()
-    return tuple(getattr(spec, name) for name in SHARED)
-
 
 @dataclass(kw_only=True)
 class Member(PackMember):
@@ -157,7 +152,7 @@ class PackedParticleTrainer(PackedTrainer):
     # (faster than the single-cell kernel it replaced: docs/decisions.md). Members in the order given.
     lone = True
     supports = staticmethod(supports)
-    pack_key = staticmethod(pack_key)
+    shared = SHARED  # the pack key (PackedTrainer.pack_key)
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[ParticleAgents]):
@@ -536,3 +531,6 @@ class PackedParticleTrainer(PackedTrainer):
             if size > 0:
                 dst[:, r] = src[:, offset:offset + size]
                 offset += size
+
+
+pack_key = PackedParticleTrainer.pack_key  # cells with equal keys can share a pack

@@ -111,11 +111,6 @@ def supports(spec: CellSpec) -> bool:
     return spec.domain == "vae" and all(getattr(spec, k) in values for k, values in IMPLEMENTED.items())
 
 
-def pack_key(spec: CellSpec) -> tuple:
-    """Cells with equal keys can share a pack."""
-    spec = spec.resolved()
-    return tuple(getattr(spec, name) for name in SHARED)
-
 
 @dataclass(kw_only=True)
 class Member(PackMember):
@@ -141,7 +136,7 @@ class PackedVAETrainer(PackedTrainer):
     # Capabilities (asp_dist.training.engines): packs only; a lone VAE cell trains on OnePassVAETrainer.
     in_sweeps = IN_SWEEPS
     supports = staticmethod(supports)
-    pack_key = staticmethod(pack_key)
+    shared = SHARED  # the pack key (PackedTrainer.pack_key)
     member_order = staticmethod(asp_members_first)  # their rows of the pack are a prefix
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
@@ -450,3 +445,6 @@ class PackedVAETrainer(PackedTrainer):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self._load_state(state)
+
+
+pack_key = PackedVAETrainer.pack_key  # cells with equal keys can share a pack
