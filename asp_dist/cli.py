@@ -276,13 +276,38 @@ def check_run_flags(args: argparse.Namespace) -> None:
                             f"use a directory of at most {107 - RAY_SOCKET_SUFFIX} characters, e.g. /tmp/asp-ray")
 
 
-def _run_options(args: argparse.Namespace):
+def _run_options(args: argparse.Namespace, tracking=None):
     from asp_dist.sweep.plan import RunOptions
+    from asp_dist.tracking.base import TrackingSettings
 
     return RunOptions(results=args.results, workers=args.workers, address=args.address,
                       max_failures=args.max_failures, checkpoint_every_s=args.checkpoint_every,
                       ray_temp_dir=args.ray_temp_dir, dashboard=args.dashboard,
-                      connect_timeout_s=args.connect_timeout, pack=args.pack, pack_size=args.pack_size)
+                      connect_timeout_s=args.connect_timeout, pack=args.pack, pack_size=args.pack_size,
+                      tracking=tracking or TrackingSettings())
+
+
+def tracking_settings(args: argparse.Namespace, name: str, defaults: dict | None):
+    """The run's live trackers (asp_dist.tracking): the flags, else `defaults` (a space file's [logging], or on
+    resume the sweep's last run's), resolved and checked -- one `asp-dist: error:` line before anything runs."""
+    from asp_dist import tracking
+
+    defaults = defaults or {}
+    if args.logger is not None:
+        loggers = tuple(k for given in args.logger for k in given.split(",") if k and k != "none")
+    else:
+        loggers = tuple(defaults.get("loggers", ()))
+    settings = tracking.TrackingSettings(
+        loggers, args.logger_dir or defaults.get("dir"), args.mlflow_uri or defaults.get("mlflow_uri"),
+        args.wandb_project or defaults.get("wandb_project"))
+    if not loggers:
+        return settings
+    # File-based trackers write next to the sweep; a sweep on S3 has no local directory: ./asp-dist-trackers/NAME.
+    default_dir = (Path("asp-dist-trackers") / name if is_remote(args.results)
+                   else Path(args.results) / name / "trackers")
+    settings = settings.resolved(default_dir)
+    tracking.check(settings)
+    return settings
 
 
 def _interruptible(args: argparse.Namespace, name_of, run) -> int:
@@ -342,11 +367,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         name.append(plan.name)
         check_can_start(args.results, plan.name, plan.specs, plan.space, args.pack, args.pack_size)
         check_data(plan.specs)
+        tracking = tracking_settings(args, plan.name, plan.logging)
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
         from asp_dist.sweep.tune import run_plan
 
-        return _finish(run_plan(plan, _run_options(args)))
+        return _finish(run_plan(plan, _run_options(args, tracking)))
 
     return _interruptible(args, lambda: name[0] if name else None, run)
 
@@ -361,11 +387,14 @@ def cmd_resume(args: argparse.Namespace) -> int:
         space, specs = check_can_resume(args.results, args.name, args.pack, args.pack_size)  # the manifest, once
         plan = Plan(args.name, space, specs)
         check_data(plan.specs)
+        from asp_dist.sweep.provenance import last_tracking
+
+        tracking = tracking_settings(args, plan.name, last_tracking(as_path(args.results) / args.name))
         if args.address is not None:
             check_address(args.address, args.connect_timeout)
         from asp_dist.sweep.tune import run_plan
 
-        return _finish(run_plan(plan, _run_options(args)))
+        return _finish(run_plan(plan, _run_options(args, tracking)))
 
     return _interruptible(args, lambda: args.name, run)
 
@@ -676,6 +705,17 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "of a new sweep) runs one cell per trial. Fixed when a sweep starts; resume keeps it")
     p.add_argument("--pack-size", type=int, default=None, metavar="N",
                    help="at most N cells per pack (default 21); larger groups split deterministically")
+    p.add_argument("--logger", action="append", default=None, metavar="tensorboard|mlflow|wandb|json",
+                   help="watch every cell live in this tracker, one tracker run per cell (repeatable; default: the "
+                        "space file's [logging], on resume the last run's; 'none': no tracker). See docs/tracking.md")
+    p.add_argument("--logger-dir", default=None, metavar="DIR",
+                   help="where tensorboard, json, wandb and the default MLflow store write "
+                        "(default RESULTS/NAME/trackers)")
+    p.add_argument("--mlflow-uri", default=None, metavar="URI",
+                   help="MLflow tracking URI (default MLFLOW_TRACKING_URI, else sqlite:///DIR/mlflow.db)")
+    p.add_argument("--wandb-project", default=None, metavar="NAME",
+                   help="W&B project (default WANDB_PROJECT, else asp-dist); offline unless W&B credentials or "
+                        "WANDB_MODE say otherwise")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -4,14 +4,15 @@ sweep.tune.run_plan; nothing downstream expands the space or reads the manifest 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from asp_dist.results import store
 from asp_dist.spec import CellSpec
 from asp_dist.sweep import ledger, preflight
 from asp_dist.sweep.packing import check_packing
-from asp_dist.sweep.spaces import expand, space_file
+from asp_dist.sweep.spaces import expand, space_file, space_logging
+from asp_dist.tracking.base import TrackingSettings
 
 DEFAULT_MAX_FAILURES = 2
 DEFAULT_CHECKPOINT_EVERY_S = 30.0
@@ -31,6 +32,7 @@ class RunOptions:
     connect_timeout_s: float = ledger.DEFAULT_CONNECT_TIMEOUT_S  # a cluster's (and S3's) first answer
     pack: str | None = None  # --pack: how cells are grouped into Tune trials (None: the sweep's own)
     pack_size: int | None = None
+    tracking: TrackingSettings = TrackingSettings()  # live trackers (--logger ...; none by default)
 
     def check(self) -> None:
         """The numbers and the packing, refused in one line before anything is read or written."""
@@ -46,12 +48,14 @@ class Plan:
     space: str  # the space's name (a file's stem), as the manifest records it
     specs: list[CellSpec]
     space_text: str | None = None  # the space file as read (None: a resume from the manifest)
+    logging: dict = field(default_factory=dict)  # the space file's [logging] table (asp_dist.sweep.spaces)
 
     @classmethod
     def from_space(cls, space: str, name: str | None = None) -> "Plan":
         """A new (or continued) sweep of a space: tune_spaces/<space>.toml or a path."""
         path = space_file(space)
-        return cls(name if name is not None else path.stem, path.stem, expand(space), path.read_text())
+        return cls(name if name is not None else path.stem, path.stem, expand(space), path.read_text(),
+                   space_logging(space))
 
     @classmethod
     def from_sweep(cls, results: str | Path, name: str) -> "Plan":

@@ -5,6 +5,7 @@
     git.txt            the asp_dist source's revision and whether its tree is dirty
     git.diff           `git diff HEAD` of the source tree, when it is dirty
     distributions.txt  every installed distribution, name==version, sorted
+    tracking.json      the live trackers of the run (--logger, their directory and URIs): a resume's default
     machine.json       host, CPU model, cores, memory, Python, platform, thread settings (OMP/MKL/torch),
                        and the Ray nodes of the run (address, CPUs, memory) when Ray is up
 
@@ -29,6 +30,7 @@ from typing import Any
 from asp_dist.results.location import AnyPath, write_replace
 
 ENV_DIR = "env"
+TRACKING = "tracking.json"  # the run's live trackers (asp_dist.tracking.base.TrackingSettings): resume's default
 SOURCE = Path(__file__).resolve().parents[2]  # the checkout that holds asp_dist (a git work tree, usually)
 
 
@@ -92,8 +94,22 @@ def next_number(sweep_dir: AnyPath) -> int:
     return max(taken, default=0) + 1
 
 
+def last_tracking(sweep_dir: AnyPath) -> dict[str, Any] | None:
+    """The trackers of the sweep's latest recorded run (its tracking.json), or None."""
+    root = sweep_dir / ENV_DIR
+    try:
+        runs = sorted((int(p.name) for p in root.iterdir() if p.name.isdigit()), reverse=True) if root.is_dir() else []
+        for n in runs:
+            path = root / str(n) / TRACKING
+            if path.exists():
+                return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return None
+
+
 def record(sweep_dir: AnyPath, *, space_text: str | None, grid: str, argv: list[str] | None = None,
-           ray_nodes: list[dict[str, Any]] | None = None) -> AnyPath:
+           ray_nodes: list[dict[str, Any]] | None = None, tracking: dict[str, Any] | None = None) -> AnyPath:
     """Write ``env/<n>/`` for this run of the sweep in `sweep_dir` and return it. `space_text`: the space
     file as run (None on resume); `grid`: one line on the grid (hash, cells) for a resume's space.toml."""
     where = sweep_dir / ENV_DIR / str(next_number(sweep_dir))
@@ -109,6 +125,8 @@ def record(sweep_dir: AnyPath, *, space_text: str | None, grid: str, argv: list[
         "distributions.txt": "\n".join(distributions()) + "\n",
         "machine.json": json.dumps(machine(ray_nodes), indent=1, sort_keys=True) + "\n",
     }
+    if tracking is not None:
+        files[TRACKING] = json.dumps(tracking, indent=1, sort_keys=True) + "\n"
     if dirty:
         files["git.diff"] = _git("diff", "HEAD", "--", "asp_dist") or ""
     if isinstance(where, Path):

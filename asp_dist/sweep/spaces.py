@@ -17,6 +17,10 @@ A space file is small and readable (stdlib ``tomllib``)::
     paired = [0, 1, 2, 4, 8, 16, 32, 64]
     trial  = { first = 0, last = 9 }   # inclusive integer range
 
+    [logging]                          # optional: live trackers of a run of this space (asp_dist.tracking)
+    loggers = ["tensorboard"]          # tensorboard | mlflow | wandb | json; --logger on the command line wins
+    dir = "runs/trackers"              # optional; also mlflow_uri, wandb_project
+
 A space of more than MAX_CELLS cells is refused from its axis lengths, before any cell is built.
 Expansion validates every value through ``CellSpec`` (types, ranges, domain rules), rejects
 domains whose module is not in this installation, drops duplicate cells (two sub-grids may
@@ -36,8 +40,9 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import CellSpec, coerce_field
 
-SPACE_KEYS = {"description", "include", "fixed", "grid"}
+SPACE_KEYS = {"description", "include", "fixed", "grid", "logging"}
 GRID_KEYS = {"name", "fixed", "axes"}
+LOGGING_KEYS = {"loggers", "dir", "mlflow_uri", "wandb_project"}
 # Cells one space may hold, counted before a grid is built: the paper's grid has 1470; a million resolved
 # cells take ~2 GB and a quarter of an hour to expand, and a sweep of them months of CPU.
 MAX_CELLS = 1_000_000
@@ -151,6 +156,26 @@ def expand(name_or_path: str) -> list[CellSpec]:
     if not specs:
         raise SweepError(f"space {space} has no cells")
     return sorted(specs.values(), key=lambda s: (s.domain, s.root_seed, s.trial, s.paired, s.method, s.cell_id))
+
+
+def space_logging(name_or_path: str) -> dict[str, Any]:
+    """A space file's [logging] table (its own, not its includes'), checked: {} when it has none."""
+    path = space_file(name_or_path)
+    table = tomllib.loads(path.read_text()).get("logging", {})
+    space = path.stem
+    if not isinstance(table, dict):
+        raise SweepError(f"space {space}: logging must be a table ([logging]), got {table!r}")
+    unknown = sorted(set(table) - LOGGING_KEYS)
+    if unknown:
+        raise SweepError(f"space {space}: unknown key(s) {', '.join(unknown)} in [logging]; "
+                         f"allowed: {', '.join(sorted(LOGGING_KEYS))}")
+    loggers = table.get("loggers", [])
+    if not isinstance(loggers, list) or not all(isinstance(k, str) for k in loggers):
+        raise SweepError(f"space {space}: [logging] loggers must be a list of names, got {loggers!r}")
+    for key in LOGGING_KEYS - {"loggers"}:
+        if key in table and not isinstance(table[key], str):
+            raise SweepError(f"space {space}: [logging] {key} must be a string, got {table[key]!r}")
+    return dict(table)
 
 
 def grid_hash(specs: list[CellSpec]) -> str:

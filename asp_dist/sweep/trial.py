@@ -35,9 +35,10 @@ from asp_dist.data.mnist import MNISTError
 from asp_dist.errors import SpecError, StorageError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path
-from asp_dist.spec import CellSpec
+from asp_dist.spec import FIELD_NAMES, CellSpec
 from asp_dist.sweep.base_cache import get_base
 from asp_dist.sweep.packing import Unit
+from asp_dist.tracking.hub import Feed, final_metrics, hub_name
 from asp_dist.training import engines
 from asp_dist.training.bases import BaseRejected
 from asp_dist.training.pipeline import run_unit, upgrade_checkpoint
@@ -112,6 +113,7 @@ def train_unit(unit: dict[str, Any]) -> None:
             why = f"{type(e).__name__}: {e}"
             failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
     live = [s for s in specs if s.cell_id not in failures]
+    feed = _feed(unit["sweep_id"], todo)
     restore = _restored_state()
     if restore is not None:
         restore = upgrade_checkpoint(restore)
@@ -124,12 +126,12 @@ def train_unit(unit: dict[str, Any]) -> None:
         try:
             results = run_unit(trainer, live, bases=bases, curves=True,
                                checkpoint=lambda state: save(dict(state, pack_id=pack_id)), restore=restore,
-                               checkpoint_every_s=unit["checkpoint_every_s"])
+                               checkpoint_every_s=unit["checkpoint_every_s"], on_points=feed)
         except StorageError:
             raise
         except DETERMINISTIC as e:
             failures.update({s.cell_id: f"{type(e).__name__}: {e}" for s in live})
-    written, last = 0, None
+    written, finals = 0, {}
     for result in results:
         spec = result.spec
         if spec.cell_id not in todo:
@@ -144,14 +146,40 @@ def train_unit(unit: dict[str, Any]) -> None:
         store.write_curve(sweep_dir, row, result.curve or [])
         written += store.write_row(sweep_dir, row, unit["sweep_id"])
         store.clear_failure(sweep_dir, spec.cell_id)
-        last = row
+        finals[spec.cell_id] = final_metrics(row, FIELD_NAMES)
+        if feed is not None:
+            feed.finish(spec.cell_id, finals[spec.cell_id], spec.train_steps)
     for spec in specs:
         if spec.cell_id in failures and spec.cell_id in todo:
             store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
-    report = {"cell_done": int(not failures), "cells_written": written, "cell_failed": len(failures)}
-    if pack_id is None and last is not None:
-        report["eval_mixed"] = float(last["eval_mixed"])
-    tune.report(report)
+            if feed is not None:
+                feed.finish(spec.cell_id, {}, 0, failures[spec.cell_id])
+    tune.report(final_report(unit, finals, written, failures))
+
+
+def final_report(unit: dict[str, Any], finals: dict[str, dict[str, float]], written: int,
+                 failures: dict[str, str]) -> dict[str, Any]:
+    """A trial's last result, as Tune's readers show it (ExperimentAnalysis, ResultGrid.get_dataframe(): one
+    row per trial): its cell ids and each written cell's final eval_* metrics -- a lone cell's at the top,
+    a pack's members' under members/<cell id>/ (Tune's dataframe flattens them to columns). The Parquet rows
+    remain the truth; this is a view for Tune's tools."""
+    report: dict[str, Any] = {"cell_done": int(not failures), "cells_written": written, "cell_failed": len(failures),
+                              "cell_ids": ",".join(unit["cell_ids"]), "pack_id": unit["pack_id"] or ""}
+    if unit["pack_id"] is None:
+        report.update(next(iter(finals.values()), {}))
+    else:
+        report["members"] = finals
+    return report
+
+
+def _feed(sweep: str, cells: set[str]) -> Feed | None:
+    """The feed to the sweep's tracker hub (asp_dist.tracking.hub), for `cells` only (a pack's members with
+    a row are done in their trackers too); None when the sweep runs without trackers."""
+    try:
+        hub = ray.get_actor(hub_name(sweep))
+    except ValueError:
+        return None
+    return Feed(hub, only=cells)
 
 
 def _restored_state() -> dict | None:

@@ -46,12 +46,14 @@ import shutil
 import signal
 import sys
 import threading
+import time
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
 import ray
 from ray import tune
+from ray.tune.logger import CSVLoggerCallback, JsonLoggerCallback
 
 from asp_dist.errors import DiskFull, StorageError, is_disk_full
 from asp_dist.results import store
@@ -62,6 +64,7 @@ from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_pac
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
 from asp_dist.sweep.spaces import grid_hash
+from asp_dist.tracking.base import TrackingSettings
 from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
 from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
     CKPT_TMP, DISK_FULL, TUNE_DIR, config_cells, train_cell, trial_name, unit_config, unit_from_config)
@@ -110,6 +113,8 @@ class SweepCallback(tune.Callback):
 
     def on_step_end(self, iteration, trials, **info):
         self._counter().update(running=self._running(trials))
+        if _HUB:
+            _HUB[0].poll()
 
     def on_trial_start(self, iteration, trials, trial, **info):
         self._refresh(trials)
@@ -132,6 +137,68 @@ class SweepCallback(tune.Callback):
 
 
 _DISK_FULL: list[str] = []  # this driver's: set by SweepCallback, read by DiskFullStopper and _run
+_HUB: list["TrackerHub"] = []  # this driver's tracker hub, while one runs (the callback polls its warnings)
+
+
+class TrackerHub:
+    """The sweep's tracker hub (asp_dist.tracking.hub.Hub) as a Ray actor on this driver's node, named so that
+    workers find it (hub_name); its warnings are printed here as they come (``poll``) and when it closes."""
+
+    POLL_EVERY_S = 5.0
+
+    def __init__(self, plan: Plan, settings: TrackingSettings, stream: TextIO):
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        from asp_dist.domains import get_domain
+        from asp_dist.tracking.cells import describe_cells
+        from asp_dist.tracking.hub import Hub, hub_name
+        from asp_dist.training.row import code_revision
+
+        cells = describe_cells(plan.specs, plan.name, code_revision(), lambda d: tuple(get_domain(d).metrics))
+        here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+        self.actor = ray.remote(Hub).options(name=hub_name(plan.name), num_cpus=0, scheduling_strategy=here,
+                                             max_concurrency=1).remote(settings, plan.name, cells)
+        self.stream, self.pending, self.polled = stream, None, time.monotonic()
+        self._print(ray.get(self.actor.ready.remote()))
+
+    def _print(self, warnings: list[str]) -> None:
+        for line in warnings:
+            self.stream.write(line + "\n")
+
+    def poll(self) -> None:
+        """Print the hub's new warnings, never waiting for it (one request in flight at a time)."""
+        if self.pending is not None:
+            ready, _ = ray.wait([self.pending], timeout=0)
+            if ready:
+                self._print(ray.get(self.pending))
+                self.pending = None
+        elif time.monotonic() - self.polled >= self.POLL_EVERY_S:
+            self.pending, self.polled = self.actor.take_warnings.remote(), time.monotonic()
+
+    def close(self, interrupted: bool) -> None:
+        """Wait for every point sent so far to be logged, then end the trackers' runs."""
+        try:
+            self._print(ray.get(self.actor.close.remote(interrupted), timeout=120))
+        except Exception as e:  # noqa: BLE001 - a hub that cannot close never fails the sweep
+            self.stream.write(f"asp-dist: warning: the trackers did not close cleanly ({type(e).__name__}: {e})\n")
+        ray.kill(self.actor)
+
+
+@contextmanager
+def _trackers(plan: Plan, settings: TrackingSettings, stream: TextIO) -> Iterator[None]:
+    """The sweep's tracker hub while Tune runs (nothing without --logger)."""
+    if not settings.loggers:
+        yield
+        return
+    hub = TrackerHub(plan, settings, stream)
+    _HUB.append(hub)
+    interrupted = True
+    try:
+        yield
+        interrupted = False
+    finally:
+        _HUB.clear()
+        hub.close(interrupted)
 
 
 class _DiskFullLogFilter(logging.Filter):
@@ -301,7 +368,10 @@ def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pen
             # num_to_keep=1 also makes Tune save its experiment state after every trial
             # checkpoint, so a killed driver resumes each cell from its latest checkpoint.
             checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-            callbacks=[callback], stop=DiskFullStopper(),
+            # Tune's JSON and CSV loggers: result.json / progress.csv per trial, what ExperimentAnalysis and
+            # ResultGrid.get_dataframe() read (one row per trial: its cell ids, final metrics). A few lines per
+            # trial; the rows stay in Parquet (docs/sweeps.md, "Ray Tune's readers").
+            callbacks=[callback, JsonLoggerCallback(), CSVLoggerCallback()], stop=DiskFullStopper(),
         ),
     )
 
@@ -347,11 +417,13 @@ def _disk_full_is_one_line(sweep_dir: AnyPath, name: str, results: str | Path) -
                        f"then: asp-dist resume {name} --results {results}") from None
 
 
-def _record_provenance(sweep_dir: AnyPath, plan: Plan, stream: TextIO, ray_nodes: list | None = None) -> None:
+def _record_provenance(sweep_dir: AnyPath, plan: Plan, stream: TextIO, ray_nodes: list | None = None,
+                       tracking: TrackingSettings | None = None) -> None:
     """env/<n>/ of this run (asp_dist.sweep.provenance); a record that cannot be written is a warning, never
     a stop (a full disk is the run's to report, when it writes what counts)."""
     try:
         provenance.record(sweep_dir, space_text=plan.space_text, ray_nodes=ray_nodes,
+                          tracking=None if tracking is None else tracking.to_dict(),
                           grid=f"space {plan.space}, {len(plan.specs)} cells, grid hash {grid_hash(plan.specs)}")
     except (OSError, StorageError) as e:
         stream.write(f"asp-dist: warning: the run's environment was not recorded under {sweep_dir}/env ({e})\n")
@@ -404,12 +476,13 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)
                     _DISK_FULL.clear()
                     with nullcontext() if address else session():
-                        _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes())
-                        _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
+                        _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes(), tracking=options.tracking)
+                        with _trackers(plan, options.tracking, stream):
+                            _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
                 else:
-                    _record_provenance(sweep_dir, plan, stream)
+                    _record_provenance(sweep_dir, plan, stream, tracking=options.tracking)
                 done, failed = ledger.finished_and_failed(sweep_dir, grid, remember=True)
                 counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
                 counter.finish()

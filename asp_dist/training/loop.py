@@ -59,8 +59,10 @@ def make_probe(spec: CellSpec, domain, base: BaseModel, agents: torch.nn.Module)
 
 
 def train_to_end(trainer, steps: int, progress: ProgressFn | None, save_state: Callable[[], None] | None,
-                 checkpoint_every_s: float, checkpoint_every_steps: int | None) -> None:
-    """Run trainer.train_step() until `steps` updates: progress every 1 % of them, and save_state (when
+                 checkpoint_every_s: float, checkpoint_every_steps: int | None,
+                 live: Callable[[], None] | None = None) -> None:
+    """Run trainer.train_step() until `steps` updates: progress (and `live`, which passes on the curve
+    points closed since its last call) every 1 % of them and once at the end, and save_state (when
     given) every `checkpoint_every_steps` updates, or every `checkpoint_every_s` seconds without a
     step interval -- never after the last update. Stops early once every member has failed (frozen: a
     diverged lone cell has nothing left to train), looked at every 1 %. One loop for a cell and for a pack."""
@@ -71,11 +73,15 @@ def train_to_end(trainer, steps: int, progress: ProgressFn | None, save_state: C
         if trainer.step % report_every == 0 or trainer.step == steps:
             if progress is not None:
                 progress("train", trainer.step, steps, {})
+            if live is not None:
+                live()
             if all(m.failed for m in trainer.members):
-                return
+                break
         if save_state is not None and trainer.step < steps:
             due = (trainer.step % checkpoint_every_steps == 0) if checkpoint_every_steps else \
                 (time.monotonic() - last_save >= checkpoint_every_s)
             if due:
                 save_state()
                 last_save = time.monotonic()
+    if live is not None:
+        live()

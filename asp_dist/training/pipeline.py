@@ -36,6 +36,10 @@ from asp_dist.training.row import build_row
 CHECKPOINT_VERSION = 3
 
 
+# run_unit's `on_points`: [(a member's spec, its curve points closed since the last call)]
+PointsFn = Callable[[list[tuple[CellSpec, list[dict[str, float]]]]], None]
+
+
 class CellDiverged(RuntimeError):
     """A cell whose gradient or recorded loss became non-finite (its trainer froze it). Deterministic: the
     sweep records it as the cell's failure once instead of retrying it; run_cell raises it."""
@@ -131,7 +135,7 @@ def generator_from_state(state: torch.Tensor) -> torch.Generator:
 def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str, BaseModel | None] | None = None,
              curves: bool = False, progress: ProgressFn | None = None, checkpoint: Callable[[dict], None] | None = None,
              restore: dict | None = None, checkpoint_every_s: float = 30.0,
-             checkpoint_every_steps: int | None = None) -> list[CellResult]:
+             checkpoint_every_steps: int | None = None, on_points: PointsFn | None = None) -> list[CellResult]:
     """Train `specs` (cells of one domain) on one trainer of `trainer_class`: bases, data, training, evaluation.
 
     trainer_class  what trains them (asp_dist.training.engines): a lone trainer takes one cell, a packed
@@ -139,6 +143,10 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
     bases       trained bases by base_key (as the sweep's base cache hands them out); a missing one is
                 trained here, once per key (its time goes to the first member of that base)
     curves      record each member's learning curve with probes (~50 points, ~10 with probe_* metrics)
+    on_points   with curves: called while the unit trains (every 1 % of its updates, and at the end) with
+                [(spec, points)]: each member's curve points closed since the last call (after a restore:
+                from its first point, the restored ones included). It only reads the curve: rows are the
+                same with or without it
     checkpoint  called with the unit's full training state every `checkpoint_every_steps` updates, or
                 every `checkpoint_every_s` seconds when no step interval is given
     restore     a state previously passed to `checkpoint` by a unit of the same cells (and the same
@@ -233,8 +241,20 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
         checkpoint({"version": CHECKPOINT_VERSION, "engine": trainer.engine, "cell_ids": live_ids,
                     "trainer": trainer.state_dict(), "timings": timings})
 
+    sent = [0] * len(order)
+
+    def pass_on_points() -> None:
+        batch = []
+        for k, (i, member) in enumerate(zip(order, trainer.members)):
+            if len(member.curve) > sent[k]:
+                batch.append((specs[i], [dict(p) for p in member.curve[sent[k]:]]))
+                sent[k] = len(member.curve)
+        if batch:
+            on_points(batch)
+
     train_to_end(trainer, trainer.train_steps, progress, save_state if checkpoint is not None else None,
-                 checkpoint_every_s, checkpoint_every_steps)
+                 checkpoint_every_s, checkpoint_every_steps,
+                 pass_on_points if on_points is not None and curves else None)
     share_wall = (time.perf_counter() - wall) / len(live)
     share_cpu = (time.process_time() - cpu) / len(live)
 
