@@ -1,6 +1,6 @@
 """The package's import graph follows the flow of the work, one way only:
 
-    plugins → cli → analysis → sweep → results → training → spec → domains → data → foundations
+    plugins → cli → analysis → sweep → tracking → results → training → spec → domains → data → foundations
 
 (foundations: errors, hashing, nn, fsutil, knobs, plugins, method_registry; `domains` is the domain core,
 asp_dist.domains itself, its contract and its registry). A module may import from its own stage or any
@@ -19,7 +19,7 @@ from __future__ import annotations
 import grimp
 import pytest
 
-STAGES = ["cli", "analysis", "sweep", "results", "training", "spec", "domains", "data"]
+STAGES = ["cli", "analysis", "sweep", "tracking", "results", "training", "spec", "domains", "data"]
 FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry"]
 DOMAIN_CORE = ("asp_dist.domains", "asp_dist.domains.contract", "asp_dist.domains.registry")
 PLUGIN_STAGE = -2  # a built-in domain's package: above every stage

@@ -55,12 +55,14 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
-    """`asp-dist sweep smoke` (18 tiny signaling cells), run once for the tests that read it. While it
-    runs, the listening TCP sockets of its whole process tree are sampled (test_sweep_listens_on_loopback_only)."""
+    """`asp-dist sweep smoke --logger tensorboard --logger json` (18 tiny signaling cells), run once for the tests
+    that read it. While it runs, the listening TCP sockets of its whole process tree are sampled
+    (test_sweep_listens_on_loopback_only)."""
     results = tmp_path_factory.mktemp("smoke-results")
     logs = tmp_path_factory.mktemp("smoke-logs")
     with open(logs / "out", "w+") as out, open(logs / "err", "w+") as err:  # files: a full pipe cannot stall it
-        proc = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(results)],
+        proc = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(results),
+                                 "--logger", "tensorboard", "--logger", "json"],
                                 env=env(), stdout=out, stderr=err, text=True, start_new_session=True)
         seen: dict[tuple[str, int], str] = {}  # (address, port) -> name of the process listening on it
         token_file = Path.home() / ".ray" / "auth_token"
@@ -136,6 +138,59 @@ def test_smoke_sweep_end_to_end(smoke):
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
+def test_smoke_sweep_feeds_its_trackers_and_rows_are_unchanged(smoke):
+    """One tracker run per cell with its whole curve and final metrics (TensorBoard read back with its own
+    reader, JSON lines), and rows bit-identical to those of cells run without any tracker."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from asp_dist.tracking.cells import describe_cells
+
+    results, proc, _ = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    sweep_dir = results / "smoke"
+    specs = expand("smoke")
+    df = assert_rows_match(store.read_rows(sweep_dir), expected_rows(specs))
+    cells = describe_cells(specs, "smoke", "?")
+    runs = sorted(p.parent for p in (sweep_dir / "trackers" / "tensorboard").rglob("events.out.tfevents.*"))
+    assert len(runs) == len(set(runs)) == 18
+    curves = store.read_curves(sweep_dir)
+    for spec in specs[:6]:  # a trial's worth, read back in full
+        row = df.set_index("cell_id").loc[spec.cell_id]
+        curve = curves[curves["cell_id"] == spec.cell_id]
+        acc = EventAccumulator(str(sweep_dir / "trackers" / "tensorboard" / cells[spec.cell_id].run_path))
+        acc.Reload()
+        assert [e.step for e in acc.Scalars("loss/total")] == [int(s) for s in curve["step"]]
+        assert acc.Scalars("eval/mixed")[-1].value == pytest.approx(row["eval_mixed"], rel=1e-6)  # float32 there
+        lines = [json.loads(x) for x in (sweep_dir / "trackers" / "json" /
+                                         f"{cells[spec.cell_id].run_path}.jsonl").read_text().splitlines()]
+        assert [x["step"] for x in lines[1:-1]] == [int(s) for s in curve["step"]]
+        assert lines[-1]["final"]["eval_mixed"] == row["eval_mixed"]
+    tracking = json.loads((sweep_dir / "env" / "1" / "tracking.json").read_text())
+    assert tracking["loggers"] == ["tensorboard", "json"]
+
+
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
+def test_ray_tunes_own_readers_give_one_row_per_trial(smoke):
+    """Tuner.restore(...).get_results().get_dataframe() and ExperimentAnalysis read Tune's JSON/CSV logs: one
+    row per trial with its cell ids and final metrics (the Parquet rows stay the truth)."""
+    from ray import tune
+
+    from asp_dist.sweep.trial import train_cell
+
+    results, proc, _ = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    experiment = results / "smoke" / "tune" / "run-1"
+    grid = store.read_rows(results / "smoke").set_index("cell_id")
+    restored = tune.Tuner.restore(str(experiment), trainable=train_cell).get_results()
+    assert len(restored) == 18 and not restored.errors
+    frame = restored.get_dataframe()
+    analysis = tune.ExperimentAnalysis(str(experiment)).dataframe()
+    for table in (frame, analysis):
+        assert len(table) == 18 and set(table["cell_ids"]) == set(grid.index)
+        assert (table.set_index("cell_ids")["eval_mixed"] == grid.loc[table["cell_ids"], "eval_mixed"].values).all()
+
+
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
 def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, monkeypatch, capsys):
     results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -157,11 +212,20 @@ def test_sigkill_of_driver_then_resume(tmp_path):
     results = tmp_path / "results"
     ray_temp = f"/tmp/asp-sk-{os.getpid()}"  # short: Ray's socket paths live under it
     driver = start_cli("sweep", grid, "--name", "k", "--results", str(results), "--checkpoint-every", "0.3",
-                       "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log")
+                       "--ray-temp-dir", ray_temp, "--logger", "json", "--logger", "tensorboard",
+                       log_dir=tmp_path / "log")
+    trackers = results / "k" / "trackers"
+
+    def live_points_of_a_running_cell() -> bool:  # curve points in its tracker before the cell has a row
+        done = {f.stem for f in parquet_files(results / "k")}
+        return any(f.stem.rsplit("-", 1)[-1] not in {d.rsplit("-", 1)[-1][:8] for d in done}
+                   and len(f.read_text().splitlines()) > 1 for f in trackers.glob("json/**/*.jsonl"))
+
     try:
-        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state knows.
-        wait_for(lambda: resumable_mid_cell(results / "k"), 300, while_alive=driver,
-                 what="a finished cell and a checkpointed running one")
+        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state knows and
+        # live points in its tracker.
+        wait_for(lambda: resumable_mid_cell(results / "k") and live_points_of_a_running_cell(), 300,
+                 while_alive=driver, what="a finished cell and a checkpointed running one with live points")
         running = session_processes(driver.pid, ray_temp)
         assert any("raylet" in c for c in running.values()), running
         driver.send_signal(signal.SIGKILL)
@@ -181,13 +245,26 @@ def test_sigkill_of_driver_then_resume(tmp_path):
     status = cli("status", "k", "--results", str(results))
     assert "not running" in status.stdout and f"total{'':<15}{done_at_kill:>7}" in status.stdout
 
-    resumed = cli("resume", "k", "--results", str(results), "--checkpoint-every", "0.3")
+    resumed = cli("resume", "k", "--results", str(results), "--checkpoint-every", "0.3")  # the last run's loggers
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"({done_at_kill} already done)" in resumed.stderr
     df = assert_rows_match(store.read_rows(results / "k"), expected_rows(specs))
     # Cells running at the kill continued from their checkpoints instead of starting over.
     assert df["resumed_from_step"].notna().any(), df[["cell_id", "resumed_from_step"]]
     assert not store.failed_cells(results / "k")
+    # ... and their tracker runs too: every curve step once, across the killed and the resumed run.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from asp_dist.tracking.cells import describe_cells
+
+    curves = store.read_curves(results / "k")
+    for cell_id, cell in describe_cells(specs, "k", "?").items():
+        steps = [int(x) for x in curves.loc[curves["cell_id"] == cell_id, "step"]]
+        lines = [json.loads(x) for x in (trackers / "json" / f"{cell.run_path}.jsonl").read_text().splitlines()]
+        assert [x["step"] for x in lines if "step" in x] == steps and "final" in lines[-1], cell_id
+        acc = EventAccumulator(str(trackers / "tensorboard" / cell.run_path))
+        acc.Reload()
+        assert [e.step for e in acc.Scalars("loss/total")] == steps, cell_id
 
 
 def ray_workers_running(cell_id: str, ray_temp_dir: str) -> list[int]:
