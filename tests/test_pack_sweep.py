@@ -16,6 +16,8 @@ mid-run, then resumed.
 
 from __future__ import annotations
 
+import json
+
 import inspect
 import os
 import shutil
@@ -458,7 +460,7 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
     specs = expand(grid)
     results = tmp_path / "results"
     packed = cli("sweep", grid, "--name", "packed", "--results", str(results), "--pack", "trial",
-                 "--ray-temp-dir", ray_temp)
+                 "--ray-temp-dir", ray_temp, "--logger", "json")
     assert packed.returncode == 0, packed.stderr[-3000:]
     assert "8/8 cells done, 0 failed" in packed.stdout
     assert "packed (--pack trial --pack-size 21: 2 pack(s) of 3 cells + 2 single cell(s))" in packed.stderr
@@ -487,7 +489,17 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
             continue
         for col in (c for c in got if c.startswith("eval_") and got[c] is not None):
             assert got[col] == pytest.approx(one[col], rel=1e-4, abs=1e-6), (cid, col)
-    assert len(store.read_curves(results / "packed").groupby("cell_id")) == 8
+    curves = store.read_curves(results / "packed")
+    assert len(curves.groupby("cell_id")) == 8
+    # One tracker run per cell, packed members too: each its own curve, live, and its own final metrics.
+    from asp_dist.tracking.cells import describe_cells
+
+    for cell_id, cell in describe_cells(specs, "packed", "?").items():
+        lines = [json.loads(x) for x in (results / "packed" / "trackers" / "json" /
+                                         f"{cell.run_path}.jsonl").read_text().splitlines()]
+        assert lines[0]["cell"]["cell_id"] == cell_id
+        assert [x["step"] for x in lines[1:-1]] == [int(s) for s in curves.loc[curves["cell_id"] == cell_id, "step"]]
+        assert lines[-1]["final"]["eval_mixed"] == rows.loc[cell_id, "eval_mixed"]
 
     # status and query see no difference.
     status = [cli("status", n, "--results", str(results)).stdout.splitlines()[1:] for n in ("packed", "single")]
