@@ -158,8 +158,8 @@ class TrackerHub:
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         self.actor = ray.remote(Hub).options(name=hub_name(plan.name), num_cpus=0, scheduling_strategy=here,
                                              max_concurrency=1).remote(settings, plan.name, cells)
-        self.stream, self.pending, self.polled = stream, None, time.monotonic()
-        self._print(ray.get(self.actor.ready.remote()))
+        # Not waited for: Tune starts while the hub imports its trackers (workers' calls queue until it is up).
+        self.stream, self.pending, self.polled = stream, self.actor.ready.remote(), time.monotonic()
 
     def _print(self, warnings: list[str]) -> None:
         for line in warnings:
@@ -353,6 +353,13 @@ def _restored_tuner(sweep_dir: AnyPath, experiment: str) -> tune.Tuner:
                               resume_errored=True, storage_filesystem=storage_fs)
 
 
+def _tune_result_logs() -> list:
+    """Tune's JSON and CSV loggers, unless ASP_DIST_TUNE_RESULT_LOGS=0 (bench/bench_trackers.py measures them)."""
+    if os.environ.get("ASP_DIST_TUNE_RESULT_LOGS", "1") == "0":
+        return []
+    return [JsonLoggerCallback(), CSVLoggerCallback()]
+
+
 def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pending: list[Unit], workers: int,
                max_failures: int, checkpoint_every_s: float) -> tune.Tuner:
     configs = [unit_config(u, sweep_dir, callback.name, checkpoint_every_s) for u in pending]
@@ -371,7 +378,7 @@ def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pen
             # Tune's JSON and CSV loggers: result.json / progress.csv per trial, what ExperimentAnalysis and
             # ResultGrid.get_dataframe() read (one row per trial: its cell ids, final metrics). A few lines per
             # trial; the rows stay in Parquet (docs/sweeps.md, "Ray Tune's readers").
-            callbacks=[callback, JsonLoggerCallback(), CSVLoggerCallback()], stop=DiskFullStopper(),
+            callbacks=[callback, *_tune_result_logs()], stop=DiskFullStopper(),
         ),
     )
 

@@ -1,0 +1,109 @@
+"""What do the live trackers cost? End-to-end wall time of the same sweep with no logger and with each one,
+in one run on one machine (issue 22, item 7; the budget: <= 5 % for tensorboard and json).
+
+    python bench/bench_trackers.py --repeats 2 --json docs/bench-results/trackers-<date>.json
+
+Workloads, each a fresh `asp-dist sweep` subprocess on the embedded Ray with 2 workers, into a new results
+directory every time (so every run trains every cell):
+  smoke              tune_spaces/smoke: 18 tiny signaling cells (a cell takes well under a second: the worst
+                     case for a per-cell cost such as opening a tracker run)
+  particles-packed   one paper particle trial pair (42 cells: paired 0..6 x 3 methods x 2 trials, short
+                     budget) packed per trial: 2 packs of 21 members, each member its own tracker run
+
+Rounds alternate the order of the variants (forward, then backward) so that a drifting load hits all of
+them alike; the figure per variant is the median over rounds, and its overhead is against the median of
+the no-logger runs. W&B runs offline (WANDB_MODE=offline). Record the load average: figures taken on a busy
+machine say little.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine_info  # noqa: E402
+
+# "no-tune-logs": no tracker and no Tune JSON/CSV result logs either (ASP_DIST_TUNE_RESULT_LOGS=0), the cost of
+# what makes Tune's readers work; every other variant keeps them, as every sweep does.
+VARIANTS = ("none", "no-tune-logs", "tensorboard", "json", "mlflow", "wandb")
+PARTICLES = """
+description = "bench_trackers: one paper particle trial pair, short budget, packed per trial"
+[[grid]]
+[grid.fixed]
+train_steps = 400
+base_train_steps = 20
+base_max_attempts = 1
+particles_accept_return = 0.0
+eval_episodes = 16
+[grid.axes]
+domain = ["particles"]
+method = ["pc", "osp", "asp"]
+paired = [0, 1, 2, 3, 4, 5, 6]
+trial = { first = 0, last = 1 }
+"""
+
+
+def run_once(workload: str, variant: str, space: str, work: Path) -> float:
+    results = Path(tempfile.mkdtemp(prefix=f"{workload}-{variant}-", dir=work))
+    cmd = [sys.executable, "-m", "asp_dist.cli", "sweep", space, "--name", "b", "--results", str(results)]
+    if workload == "particles-packed":
+        cmd += ["--pack", "trial"]
+    if variant not in ("none", "no-tune-logs"):
+        cmd += ["--logger", variant]
+    env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true",
+               ASP_DIST_TUNE_RESULT_LOGS="0" if variant == "no-tune-logs" else "1")
+    start = time.perf_counter()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(f"{workload}/{variant} failed:\n{done.stderr[-2000:]}")
+    return seconds
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=2, help="rounds (alternating order); median per variant")
+    ap.add_argument("--workloads", default="smoke,particles-packed")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args()
+    variants = args.variants.split(",")
+    load_before = os.getloadavg()
+    out = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "load_before": load_before,
+           "workloads": {}}
+    with tempfile.TemporaryDirectory(prefix="bench-trackers-") as tmp:
+        work = Path(tmp)
+        spaces = {"smoke": "smoke", "particles-packed": str(work / "particles.toml")}
+        (work / "particles.toml").write_text(PARTICLES)
+        for workload in args.workloads.split(","):
+            times: dict[str, list[float]] = {v: [] for v in variants}
+            for r in range(args.repeats):
+                for variant in variants if r % 2 == 0 else variants[::-1]:
+                    times[variant].append(run_once(workload, variant, spaces[workload], work))
+                    print(f"{workload} {variant}: {times[variant][-1]:.1f} s", file=sys.stderr)
+            base = statistics.median(times["none"]) if "none" in times else None
+            out["workloads"][workload] = {
+                v: {"seconds": ts, "median_s": statistics.median(ts),
+                    "overhead": None if base is None else statistics.median(ts) / base - 1} for v, ts in times.items()}
+    out["load_after"] = os.getloadavg()
+    print(f"load average before {load_before[0]:.2f}, after {out['load_after'][0]:.2f}")
+    print("| workload | logger | median wall (s) | runs (s) | overhead |\n|---|---|---|---|---|")
+    for workload, by in out["workloads"].items():
+        for v, rec in by.items():
+            over = "" if rec["overhead"] is None or v == "none" else f"{100 * rec['overhead']:+.1f} %"
+            print(f"| {workload} | {v} | {rec['median_s']:.1f} | {', '.join(f'{t:.1f}' for t in rec['seconds'])} "
+                  f"| {over} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
