@@ -560,7 +560,8 @@ def test_query_and_stats_of_a_sweep_on_s3(s3, smoke_on_s3):
 def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(s3, smoke_on_s3):
     """The S3 twin of tests/test_sweep.py's damaged-file test: a cut-short, an empty and another cell's object
     under a cell's key are copied into damaged/ and deleted (one warning each), the cells train again and
-    each row is written once; the other objects are not rewritten. Runs after the other smoke_on_s3 tests."""
+    each row is written once; the other objects are not rewritten. Then `--extend` grows the sweep by a trial.
+    Runs after the other smoke_on_s3 tests (it changes the sweep they read)."""
     from asp_dist.results import location, store
 
     run = smoke_on_s3
@@ -593,6 +594,20 @@ def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(
     kept = [k for k in keys(s3, f"{run.results}/smoke/{store.DAMAGED_DIR}/") if "/cells/" in k]
     assert sorted(k.rsplit("/", 1)[1] for k in kept) == sorted(k.rsplit("/", 1)[1] for k in (cut, empty, wrong))
     assert all(k.startswith(prefix + store.DAMAGED_DIR + "/") for k in kept)
+
+    # Last, grown by one trial with --extend: the 18 stay as they are, the 9 new cells train.
+    grown = run.cwd / "smoke-grown.toml"
+    grown.write_text('include = ["smoke"]\n[[grid]]\nfixed = { train_steps = 150, unpaired_size = 256 }\n'
+                     'axes = { domain = ["signaling"], method = ["pc", "osp", "asp"], paired = [0, 2, 8], trial = [2] }\n')
+    before = keys(s3, f"{run.results}/smoke/cells/")
+    extended = cli(s3, "sweep", str(grown), "--name", "smoke", "--extend", "--results", run.results,
+                   "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
+    assert extended.returncode == 0 and "18 already done" in extended.stderr, extended.stderr[-2000:]
+    assert "27/27 cells done, 0 failed" in extended.stdout
+    now = keys(s3, f"{run.results}/smoke/cells/")
+    assert {k: now[k] for k in before} == before and len([k for k in now if k.endswith(".parquet")]) == 27
+    manifest = json.loads(s3.client.get_object(Bucket=BUCKET, Key=prefix + "manifest.json")["Body"].read())
+    assert [h["cells"] for h in manifest["history"]] == [18, 27] and len(manifest["cells"]) == 27
 
 
 @pytest.mark.slow

@@ -33,7 +33,7 @@ from asp_dist.method_registry import METHODS
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
 from asp_dist.spec import CellSpec
-from asp_dist.sweep.packing import MANIFEST_KEY, Packing
+from asp_dist.sweep.packing import MANIFEST_KEY, Packing, make_units, stored_packing
 from asp_dist.sweep.spaces import grid_hash
 
 SWEEP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")  # a directory name, never a path
@@ -196,6 +196,39 @@ def new_manifest(name: str, space: str, specs: list[CellSpec], packing: Packing 
             "domains": domain_plugins(sorted({s.domain for s in specs})),
             "methods": method_plugins(sorted({s.method for s in specs})),
             "asp_dist_version": __version__, "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def extended_manifest(existing: dict[str, Any], space: str, specs: list[CellSpec]) -> dict[str, Any]:
+    """The manifest of a sweep grown by `--extend` to the grid `specs`, or a SweepError naming what differs.
+
+    Allowed: the new grid holds every stored cell (same ids: no value removed, no knob changed) and every
+    stored cell stays in the Tune trial it had (the same pack, or alone), so finished rows, failure records,
+    bases and checkpoints all stay valid; new cells make new units (a grown trial range makes new packs; new
+    members of an existing trial's pack would change that pack, and are refused). The packing is the stored
+    one. `history` records each grid the sweep has had: hash, space, cell count, when."""
+    name = existing["name"]
+    old = specs_from_manifest(existing)
+    new_ids = {s.cell_id for s in specs}
+    missing = [s.cell_id for s in old if s.cell_id not in new_ids]
+    if missing:
+        raise SweepError(f"--extend keeps every cell of sweep {name!r}, but the new grid lacks {len(missing)} of its "
+                         f"{len(old)} cells (e.g. {missing[0]}: a value removed from an axis, or a knob changed); "
+                         f"add cells only, or use another --name")
+    packing = stored_packing(existing) or Packing()
+    grown = {tuple(u.cell_ids): u.pack_id for u in make_units(specs, packing)}
+    for unit in make_units(old, packing):
+        if grown.get(tuple(unit.cell_ids), "changed") != unit.pack_id:
+            what = f"pack {unit.pack_id}" if unit.pack_id else f"cell {unit.cell_ids[0]}"
+            raise SweepError(f"--extend would change the Tune trial of {what} of sweep {name!r} ({packing.describe()}): "
+                             f"new cells may not join the packs of stored ones; extend by whole trials (a new trial "
+                             f"range) or use another --name")
+    now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    history = list(existing.get("history") or [{"grid_hash": existing["grid_hash"], "space": existing["space"],
+                                                "cells": len(old), "at": existing.get("created_at")}])
+    history.append({"grid_hash": grid_hash(specs), "space": space, "cells": len(specs), "at": now})
+    return dict(existing, space=space, grid_hash=grid_hash(specs), cells=[s.cell_id for s in specs],
+                specs=[s.to_dict() for s in specs], domains=domain_plugins(sorted({s.domain for s in specs})),
+                methods=method_plugins(sorted({s.method for s in specs})), history=history)
 
 
 def domain_plugins(names: list[str]) -> dict[str, dict[str, str]]:

@@ -33,6 +33,7 @@ class RunOptions:
     pack: str | None = None  # --pack: how cells are grouped into Tune trials (None: the sweep's own)
     pack_size: int | None = None
     tracking: TrackingSettings = TrackingSettings()  # live trackers (--logger ...; none by default)
+    extend: bool = False  # --extend: a grid that adds cells to the stored one grows the sweep
 
     def check(self) -> None:
         """The numbers and the packing, refused in one line before anything is read or written."""

@@ -23,6 +23,7 @@ from asp_dist.results.location import AnyPath, S3Path, check_bucket
 from asp_dist.spec import CellSpec
 from asp_dist.sweep.ledger import (DEFAULT_CONNECT_TIMEOUT_S, _sweep_lease, lock_holder, new_manifest, read_sweep,
                                    specs_from_manifest, sweep_dir_for)
+from asp_dist.sweep.ledger import extended_manifest
 from asp_dist.sweep.packing import Packing, resolve_packing
 from asp_dist.sweep.spaces import grid_hash
 
@@ -174,18 +175,23 @@ def check_address(address: str, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) ->
 
 # ---- the grid and the lock ----------------------------------------------------------------------
 def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,
-                   packing: Packing | None = None) -> dict[str, Any]:
+                   packing: Packing | None = None, extend: bool = False) -> dict[str, Any]:
     """The sweep's manifest (a new one, with `packing`, if it has none); refuses a grid that differs from
-    the stored one."""
+    the stored one, unless `extend` and the new grid only adds cells (ledger.extended_manifest: then the
+    manifest of the grown grid, to be written before any new cell runs)."""
     existing = store.read_manifest(sweep_dir)
     if existing is None:
         return new_manifest(name, space, specs, packing)
     digest, stored = grid_hash(specs), existing.get("grid_hash")
-    if stored != digest:
-        raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
-                         f"{existing.get('space')!r}, {len(existing['cells'])} cells, hash {stored}; "
-                         f"now {space!r}, {len(specs)} cells, hash {digest}); use another --name")
-    return existing
+    if stored == digest:
+        return existing
+    if extend:
+        return extended_manifest(existing, space, specs)
+    grows = set(existing["cells"]) < {s.cell_id for s in specs}
+    raise SweepError(f"sweep {name!r} in {sweep_dir.parent} was started with another grid (space "
+                     f"{existing.get('space')!r}, {len(existing['cells'])} cells, hash {stored}; "
+                     f"now {space!r}, {len(specs)} cells, hash {digest}); use another --name"
+                     + (", or --extend to add the new cells to this sweep" if grows else ""))
 
 
 def check_not_running(sweep_dir: AnyPath) -> None:
@@ -202,7 +208,7 @@ def check_not_running(sweep_dir: AnyPath) -> None:
 
 
 def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str,
-                    pack: str | None = None, pack_size: int | None = None) -> AnyPath:
+                    pack: str | None = None, pack_size: int | None = None, extend: bool = False) -> AnyPath:
     """Everything `sweep` refuses about where it would run, checked without writing: the name, the
     results dir, a directory that is not a sweep, a sweep started with another grid or packing, a
     running sweep. The run checks them again under its lock (tune._run); this is the early, read-only
@@ -213,7 +219,7 @@ def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], sp
     resolve_packing(pack, pack_size, manifest)
     if manifest is not None:
         read_sweep(results, name)  # its manifest's shape
-        check_manifest(sweep_dir, name, specs, space)
+        check_manifest(sweep_dir, name, specs, space, extend=extend)
         check_not_running(sweep_dir)
     return sweep_dir
 

@@ -172,14 +172,19 @@ def final_report(unit: dict[str, Any], finals: dict[str, dict[str, float]], writ
     return report
 
 
+_HUBS: dict[str, Any] = {}  # sweep -> its hub's handle (or None), looked up once per worker process and Ray session
+
+
 def _feed(sweep: str, cells: set[str]) -> Feed | None:
     """The feed to the sweep's tracker hub (asp_dist.tracking.hub), for `cells` only (a pack's members with
-    a row are done in their trackers too); None when the sweep runs without trackers."""
-    try:
-        hub = ray.get_actor(hub_name(sweep))
-    except ValueError:
-        return None
-    return Feed(hub, only=cells)
+    a row are done in their trackers too); None when the sweep runs without trackers. (A worker lives in one
+    Ray session, and a session runs one sweep run: its hub, or none, for every trial the worker takes.)"""
+    if sweep not in _HUBS:
+        try:
+            _HUBS[sweep] = ray.get_actor(hub_name(sweep))
+        except ValueError:
+            _HUBS[sweep] = None
+    return None if _HUBS[sweep] is None else Feed(_HUBS[sweep], only=cells)
 
 
 def _restored_state() -> dict | None:

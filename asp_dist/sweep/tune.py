@@ -166,12 +166,16 @@ class TrackerHub:
             self.stream.write(line + "\n")
 
     def poll(self) -> None:
-        """Print the hub's new warnings, never waiting for it (one request in flight at a time)."""
+        """Print the hub's new warnings, never waiting for it (one request in flight at a time; Tune's loop
+        calls this many times a second, the hub is asked every POLL_EVERY_S)."""
+        if time.monotonic() - self.polled < 1.0:
+            return
         if self.pending is not None:
             ready, _ = ray.wait([self.pending], timeout=0)
             if ready:
                 self._print(ray.get(self.pending))
                 self.pending = None
+            self.polled = time.monotonic()
         elif time.monotonic() - self.polled >= self.POLL_EVERY_S:
             self.pending, self.polled = self.actor.take_warnings.remote(), time.monotonic()
 
@@ -460,8 +464,10 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
             preflight.check_sweep_dir(sweep_dir)
             with ledger.sweep_lock(sweep_dir, connect_timeout_s=connect_timeout_s):
                 packing = resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))  # refuses another one
-                manifest = preflight.check_manifest(sweep_dir, name, specs, space, packing)  # refuses a different grid
-                if store.read_manifest(sweep_dir) is None:
+                # refuses a different grid (with --extend: one that only adds cells grows the sweep)
+                manifest = preflight.check_manifest(sweep_dir, name, specs, space, packing, extend=options.extend)
+                stored = store.read_manifest(sweep_dir)
+                if stored is None or stored["grid_hash"] != manifest["grid_hash"]:  # before any new cell runs
                     store.write_manifest(sweep_dir, manifest)
                 if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch
                     shutil.rmtree(sweep_dir / TUNE_DIR / CKPT_TMP, ignore_errors=True)  # a killed worker's leftovers

@@ -52,7 +52,7 @@ class Hub:
             self.trackers.append(tracker)
 
     def ready(self) -> list[str]:
-        """The warnings so far (the driver waits for this once: the trackers have started)."""
+        """The warnings so far, once the trackers have started (the driver's first poll)."""
         return self.take_warnings()
 
     def _warn(self, tracker: Tracker, what: str, e: BaseException) -> None:

@@ -1,0 +1,185 @@
+"""How many trials a comparison needs: the power of the paper's test (or Wilcoxon–Holm) for one comparison of
+a sweep's rows, estimated by resampling whole trials, and the trial count that reaches a target power.
+
+A *comparison* is two treatments (``a`` better than ``b``: ASP over OSP, say) of one domain and condition over a
+paired range, judged among a set of treatments (default: every treatment in range, as the stats job does):
+
+    friedman-nemenyi   the paper's: Friedman over the treatments (blocks = trial x paired count) at alpha,
+                       then Nemenyi's post-hoc p(a, b) < alpha, with a's mean rank better than b's
+    wilcoxon-holm      the second view: Wilcoxon signed-rank of a - b over the same blocks, Holm-adjusted over
+                       every pair of the treatments, < alpha, with a's median difference > 0 (and, with three
+                       or more treatments, Friedman at alpha first, as the stats job requires)
+
+Power at n trials = how often the test rejects on n trials drawn with replacement from the sweep's trials, each
+with all its paired counts (a trial is the unit the sweep adds: its blocks share a base and data seeds). This
+is the calibration study's rule (asp_dist.analysis.calibration.power: Friedman with ASP best) made general.
+The estimate is only as good as the rows it resamples: with few trials it inherits their sampling error, and
+it is checked in tests/test_power.py against simulations of a known effect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+from asp_dist.analysis.layout import domain_layout, label_rows, treatment_order
+from asp_dist.analysis.rank_tests import friedman, holm, mean_ranks, wilcoxon
+from asp_dist.analysis.tables import block_matrix
+from asp_dist.errors import SpecError
+
+TESTS = ("friedman-nemenyi", "wilcoxon-holm")
+SIZES = (5, 10, 15, 20, 25, 30, 40, 50, 60, 80, 100, 120, 150, 200, 300)
+
+
+@dataclass
+class Comparison:
+    """One comparison's complete blocks (index root_seed, trial, paired; one column per treatment, scores:
+    larger is better) and what is compared."""
+
+    domain: str
+    condition: str
+    paired: tuple[int, int]
+    a: str
+    b: str
+    blocks: pd.DataFrame
+
+    @property
+    def trials(self) -> list[int]:
+        return sorted(self.blocks.index.get_level_values("trial").unique())
+
+
+@dataclass
+class PowerEstimate:
+    comparison: Comparison
+    test: str
+    alpha: float
+    target: float
+    rates: dict[int, float] = field(default_factory=dict)  # trials -> estimated power
+    observed_rejects: bool = False  # the test on the sweep's own trials
+
+    @property
+    def current(self) -> int:
+        return len(self.comparison.trials)
+
+    @property
+    def needed(self) -> int | None:
+        """The smallest trial count whose estimated power reaches the target (None: none of SIZES does)."""
+        return next((n for n in sorted(self.rates) if self.rates[n] >= self.target), None)
+
+
+def comparison(rows: pd.DataFrame, domain: str, a: str, b: str, paired: tuple[int, int] | None = None,
+               condition: str | None = None, treatments: Sequence[str] | None = None,
+               metric: str = "eval_mixed") -> Comparison:
+    """The blocks of `a` against `b` among `treatments` (default: all in range) for one condition."""
+    rows = rows[rows["domain"] == domain]
+    if rows.empty:
+        raise SpecError(f"no {domain} rows")
+    layout = domain_layout(rows, metric)
+    rows = label_rows(rows, layout, metric)
+    conditions = sorted(rows["condition"].unique())
+    if condition is None:
+        if len(conditions) > 1:
+            raise SpecError(f"{domain} rows hold {len(conditions)} conditions ({', '.join(conditions)}); "
+                            f"choose one with --condition")
+        condition = conditions[0]
+    if condition not in conditions:
+        raise SpecError(f"no {domain} condition {condition!r}; the rows have {', '.join(conditions)}")
+    rows = rows[rows["condition"] == condition]
+    lo, hi = paired if paired is not None else (int(rows["paired"].min()), int(rows["paired"].max()))
+    rows = rows[(rows["paired"] >= lo) & (rows["paired"] <= hi)]
+    present = treatment_order(rows["treatment"])
+    chosen = list(treatments) if treatments else present
+    for t in {a, b, *chosen}:
+        if t not in present:
+            raise SpecError(f"no {domain} rows of treatment {t!r} at paired {lo}-{hi} ({condition}); "
+                            f"there are {', '.join(present) or 'none'}")
+    if a == b:
+        raise SpecError(f"compare two different treatments, got {a!r} twice")
+    chosen = treatment_order(set(chosen) | {a, b})
+    blocks = block_matrix(rows, chosen)
+    if blocks.index.get_level_values("trial").nunique() < 2:
+        raise SpecError(f"{domain} ({condition}) has complete blocks of fewer than two trials at paired {lo}-{hi}")
+    return Comparison(domain, condition, (lo, hi), a, b, blocks)
+
+
+def nemenyi_pair(scores: np.ndarray, i: int, j: int) -> float:
+    """Nemenyi's p for treatments i and j after Friedman (rank_tests.nemenyi's, for one pair: what the
+    resampling loop needs thousands of times)."""
+    from scipy.stats import studentized_range
+
+    n, k = scores.shape
+    ranks = mean_ranks(scores)
+    q = abs(ranks[i] - ranks[j]) / np.sqrt(k * (k + 1) / (6.0 * n)) * np.sqrt(2.0)
+    return float(studentized_range.sf(q, k, np.inf)) if q > 0 else 1.0
+
+
+def rejects(scores: np.ndarray, ia: int, ib: int, test: str, alpha: float) -> bool:
+    """Whether `test` finds treatment ia better than ib on these blocks x treatments scores."""
+    k = scores.shape[1]
+    if k >= 3:
+        _, p = friedman(scores)
+        if not p < alpha:
+            return False
+    if test == "friedman-nemenyi":
+        if k < 3:
+            raise SpecError("friedman-nemenyi needs three or more treatments; use --test wilcoxon-holm")
+        ranks = mean_ranks(scores)
+        return bool(nemenyi_pair(scores, ia, ib) < alpha and ranks[ia] < ranks[ib])
+    pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
+    ps = holm([wilcoxon(scores[:, i] - scores[:, j])[1] for i, j in pairs])
+    p = ps[pairs.index((min(ia, ib), max(ia, ib)))]
+    return bool(p < alpha and np.median(scores[:, ia] - scores[:, ib]) > 0)
+
+
+def estimate(comp: Comparison, test: str = "friedman-nemenyi", alpha: float = 0.05, target: float = 0.8,
+             sizes: Sequence[int] = SIZES, resamples: int = 1000, seed: int = 0) -> PowerEstimate:
+    """Power of `test` at every trial count in `sizes` (and at the sweep's own count), resampling trials."""
+    if test not in TESTS:
+        raise SpecError(f"unknown test {test!r}; choose one of {', '.join(TESTS)}")
+    if not 0 < target < 1:
+        raise SpecError(f"--target must be between 0 and 1, got {target}")
+    cols = list(comp.blocks.columns)
+    ia, ib = cols.index(comp.a), cols.index(comp.b)
+    per_trial = [comp.blocks.xs(t, level="trial").to_numpy() for t in comp.trials]
+    out = PowerEstimate(comp, test, alpha, target,
+                        observed_rejects=rejects(np.concatenate(per_trial), ia, ib, test, alpha))
+    rng = np.random.default_rng(seed)
+    for n in sorted(set(sizes) | {len(per_trial)}):
+        hits = 0
+        for _ in range(resamples):
+            pick = rng.integers(len(per_trial), size=n)
+            hits += rejects(np.concatenate([per_trial[i] for i in pick]), ia, ib, test, alpha)
+        out.rates[n] = hits / resamples
+    return out
+
+
+def trial_range(first: int, count: int) -> str:
+    """The axis to add, as a space file writes it."""
+    return f"trial = {{ first = {first}, last = {first + count - 1} }}"
+
+
+def report(est: PowerEstimate, fresh_from: int | None = None) -> str:
+    """The estimate as text: power by trial count, the count for the target, and the trials to add."""
+    c = est.comparison
+    lines = [f"{c.domain} ({c.condition}), paired {c.paired[0]}-{c.paired[1]}: {c.a} better than {c.b} "
+             f"among {', '.join(c.blocks.columns)}; test {est.test} at alpha {est.alpha}",
+             f"{est.current} trials ({len(c.blocks)} complete blocks) in the sweep; the test "
+             f"{'rejects' if est.observed_rejects else 'does not reject'} on them",
+             "", "| trials | estimated power |", "|---:|---:|"]
+    lines += [f"| {n}{' (the sweep)' if n == est.current else ''} | {r:.3f} |" for n, r in sorted(est.rates.items())]
+    need = est.needed
+    lines.append("")
+    if need is None:
+        lines.append(f"power {est.target} is not reached by {max(est.rates)} trials")
+        return "\n".join(lines)
+    lines.append(f"trials for power {est.target}: {need}")
+    if need > est.current:
+        last = max(c.trials)
+        lines.append(f"to grow this sweep to {need} trials (asp-dist sweep SPACE --name NAME --extend), add "
+                     f"{need - est.current}: {trial_range(last + 1, need - est.current)}")
+    if fresh_from is not None:
+        lines.append(f"a replication on fresh trials: {trial_range(fresh_from, need)}")
+    return "\n".join(lines)
