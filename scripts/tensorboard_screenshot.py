@@ -34,10 +34,10 @@ def main() -> None:
     if chromium is None:
         raise SystemExit("needs Debian's chromium (apt-get install chromium)")
     tmp = Path(tempfile.mkdtemp(prefix="tb-shot-"))
-    logdir = tmp / "results" / "smoke" / "trackers" / "tensorboard"
+    logdir = tmp / "trackers" / "tensorboard"  # --logger-dir: the sweep's own directory must not exist before it
     env = dict(os.environ, OMP_NUM_THREADS="1")
     sweep = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(tmp / "results"),
-                              "--logger", "tensorboard"], env=env, stdout=subprocess.DEVNULL,
+                              "--logger", "tensorboard", "--logger-dir", str(tmp / "trackers")], env=env, stdout=subprocess.DEVNULL,
                              stderr=open(tmp / "sweep.err", "w"), start_new_session=True)
     port = free_port()
     logdir.mkdir(parents=True, exist_ok=True)
@@ -51,7 +51,9 @@ def main() -> None:
             if len(cells) >= 8 or sweep.poll() is not None:
                 break
             time.sleep(0.2)
-        print(f"{len(cells)} of 18 cells done; the sweep is {'running' if sweep.poll() is None else 'done'}")
+        if sweep.poll() is not None:
+            raise SystemExit(f"the sweep ended before the screenshot: {(tmp / 'sweep.err').read_text()[-2000:]}")
+        print(f"{len(cells)} of 18 cells done, the sweep running")
         time.sleep(3)  # TensorBoard reloads every second
         url = f"http://127.0.0.1:{port}/?darkMode=false#scalars&tagFilter=loss%2Ftotal%7Cprobe%2Fmixed%24"
         urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30).read()
