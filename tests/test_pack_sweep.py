@@ -295,7 +295,13 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
     assert len(store.read_curves(sweep_dir).groupby("cell_id")) == 6
     expected = direct_rows([unit], store.bases_dir(sweep_dir))
     assert_rows(store.read_rows(sweep_dir), expected)  # bit for bit: the same pack, trained directly
-    assert len(fake.saved) == 39 and fake.reports[-1] == {"cell_done": 1, "cells_written": 6, "cell_failed": 0}
+    assert len(fake.saved) == 39
+    # The last result, as Tune's readers show it: counts, the cell ids, each member's final eval_* metrics.
+    last = fake.reports[-1]
+    assert {k: last[k] for k in ("cell_done", "cells_written", "cell_failed")} == \
+        {"cell_done": 1, "cells_written": 6, "cell_failed": 0}
+    assert last["cell_ids"] == ",".join(unit.cell_ids) and last["pack_id"] == unit.pack_id
+    assert {cid: m["eval_mixed"] for cid, m in last["members"].items()} == rows["eval_mixed"].to_dict()
     staging = sweep_dir / sweep_tune.TUNE_DIR / sweep_tune.CKPT_TMP
     assert not any(staging.iterdir()), "a staged checkpoint was left behind"
 
@@ -376,7 +382,10 @@ def test_a_rejected_base_fails_its_members_only(trainable, tmp_path):
     assert done == {s.cell_id for s in specs if s.trial == 0}
     assert set(failed) == {s.cell_id for s in specs if s.trial == 1}
     assert all("BaseRejected: no base met the bar (planted" in r["error"] for r in failed.values())
-    assert fake.reports[-1] == {"cell_done": 0, "cells_written": 2, "cell_failed": 2}
+    last = fake.reports[-1]
+    assert {k: last[k] for k in ("cell_done", "cells_written", "cell_failed")} == \
+        {"cell_done": 0, "cells_written": 2, "cell_failed": 2}
+    assert sorted(last["members"]) == sorted(done)  # final metrics of the written members only
 
 
 def test_progress_and_failures_count_cells_not_packs(tmp_path):

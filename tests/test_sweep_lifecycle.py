@@ -277,7 +277,8 @@ def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeyp
 
     monkeypatch.setattr(trial, "run_unit", unreadable)
     sweep_tune.train_cell(config)  # returns: Tune sees a finished trial, not an error to retry
-    assert reports == [({"cell_done": 0, "cells_written": 0, "cell_failed": 1}, None)]
+    assert reports == [({"cell_done": 0, "cells_written": 0, "cell_failed": 1, "cell_ids": spec.cell_id,
+                         "pack_id": ""}, None)]
     failed = store.failed_cells(sweep_dir)
     assert list(failed) == [spec.cell_id]
     assert "MNISTError: MNIST file /data/train-images.gz is unreadable" in failed[spec.cell_id]["error"]
