@@ -93,9 +93,15 @@ class Tracker:
     kind: ClassVar[str]
     module: ClassVar[str]  # the library it needs (its import is the check that it is installed)
     install: ClassVar[str]  # what to pip install when it is missing
+    subdir: ClassVar[str | None] = None  # its directory under the tracker directory, if it writes files there
 
     def __init__(self, settings: TrackingSettings, sweep: str):
         self.settings, self.sweep = settings, sweep
+
+    @property
+    def root(self) -> Path:
+        """Where it writes: DIR/<subdir>."""
+        return Path(self.settings.dir) / (self.subdir or "")
 
     @classmethod
     def check(cls, settings: TrackingSettings) -> None:
@@ -107,6 +113,8 @@ class Tracker:
             importlib.import_module(cls.module)
         except ImportError as e:
             raise TrackerError(f"--logger {cls.kind} needs {cls.module} ({e}); pip install {cls.install}") from None
+        if cls.subdir is not None:
+            check_writable(cls.kind, Path(settings.dir) / cls.subdir)
 
     def start(self) -> None:
         """Once per sweep run, before the first cell."""

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from asp_dist.tracking.base import Tracker, TrackingSettings, check_writable
+from asp_dist.tracking.base import Tracker, TrackingSettings
 from asp_dist.tracking.cells import CellInfo
 
 
@@ -19,15 +19,11 @@ class JsonLinesTracker(Tracker):
     kind = "json"
     module = "json"
     install = "(the standard library)"
+    subdir = "json"
 
     def __init__(self, settings: TrackingSettings, sweep: str):
         super().__init__(settings, sweep)
-        self.root = Path(settings.dir) / "json"
         self.files: dict[str, Any] = {}
-
-    @classmethod
-    def check(cls, settings: TrackingSettings) -> None:
-        check_writable(cls.kind, Path(settings.dir) / "json")
 
     def path(self, cell: CellInfo) -> Path:
         return self.root / f"{cell.run_path}.jsonl"

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from asp_dist.tracking.base import Tracker, TrackingSettings, check_writable, hparam, metric_name, scalars
+from asp_dist.tracking.base import Tracker, TrackingSettings, hparam, metric_name, scalars
 from asp_dist.tracking.cells import CellInfo
 
 FLUSH_SECS = 5  # how stale a live TensorBoard may be
@@ -26,16 +26,11 @@ class TensorBoardTracker(Tracker):
     kind = "tensorboard"
     module = "tensorboard"
     install = "tensorboard"
+    subdir = "tensorboard"
 
     def __init__(self, settings: TrackingSettings, sweep: str):
         super().__init__(settings, sweep)
-        self.root = Path(settings.dir) / "tensorboard"
         self.writers: dict[str, Any] = {}
-
-    @classmethod
-    def check(cls, settings: TrackingSettings) -> None:
-        super().check(settings)
-        check_writable(cls.kind, Path(settings.dir) / "tensorboard")
 
     def logdir(self, cell: CellInfo) -> Path:
         return self.root / cell.run_path

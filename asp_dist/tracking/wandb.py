@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from asp_dist.hashing import stable_hash
-from asp_dist.tracking.base import Tracker, TrackingSettings, check_writable, hparam, metric_name, scalars
+from asp_dist.tracking.base import Tracker, TrackingSettings, hparam, metric_name, scalars
 from asp_dist.tracking.cells import CellInfo
 
 
@@ -33,28 +33,23 @@ class WandbTracker(Tracker):
     kind = "wandb"
     module = "wandb"
     install = "wandb"
+    subdir = "wandb"  # W&B's own: wandb.init(dir=DIR) writes its runs under DIR/wandb
 
     def __init__(self, settings: TrackingSettings, sweep: str):
         super().__init__(settings, sweep)
-        self.dir = Path(settings.dir)
         self.runs: dict[str, Any] = {}
         self.mode = _mode()
-
-    @classmethod
-    def check(cls, settings: TrackingSettings) -> None:
-        super().check(settings)
-        check_writable(cls.kind, Path(settings.dir) / "wandb")
 
     def open_cell(self, cell: CellInfo) -> int | None:
         import wandb
 
         run_id = run_id_of(cell)
-        last = max((s for f in sorted((self.dir / "wandb").glob(f"*-{run_id}/run-{run_id}.wandb"))
+        last = max((s for f in sorted(self.root.glob(f"*-{run_id}/run-{run_id}.wandb"))
                     for s in history_steps(f)), default=None)
         config = {k: hparam(v) for k, v in cell.config.items()} | {"sweep": cell.sweep, "cell_id": cell.cell_id,
                                                                    "code_revision": cell.revision}
         self.runs[cell.cell_id] = wandb.init(
-            project=self.settings.wandb_project, dir=str(self.dir), mode=self.mode, id=run_id, resume="allow",
+            project=self.settings.wandb_project, dir=self.settings.dir, mode=self.mode, id=run_id, resume="allow",
             name=cell.run_name, group=cell.group, job_type=cell.treatment, config=config,
             tags=[f"trial={cell.trial}", f"sweep={cell.sweep}", f"rev={cell.revision[:12]}"],
             reinit="create_new", settings=wandb.Settings(console="off", x_disable_stats=True, silent=True))
