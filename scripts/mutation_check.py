@@ -69,7 +69,7 @@ MUTATIONS = (
     Mutation("a restored cell starts over instead of continuing from its checkpoint", "asp_dist/sweep/trial.py",
              "    restore = _restored_state()\n    if restore is not None:\n",
              "    restore = None\n    if restore is not None:\n",
-             ("tests/test_sweep.py::test_sigkill_of_driver_then_resume",)),
+             ("tests/test_sweep.py::test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once",)),
 )
 
 

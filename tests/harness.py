@@ -9,8 +9,10 @@ found next to sys.executable (the venv's `ray`), never on PATH.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import os
+import re
 import secrets
 import signal
 import socket
@@ -146,16 +148,79 @@ def parquet_files(sweep_dir: str | Path) -> list[Path]:
     return sorted(Path(sweep_dir, "cells").glob("domain=*/method=*/*.parquet"))
 
 
-def resumable_mid_cell(sweep_dir: Path, experiment: str = "run-1") -> bool:
-    """A cell has its row, and another, still running, has a checkpoint that Tune's experiment state knows
-    (the state was saved after it: Tune restores from that state, which lags a checkpoint under load)."""
-    done = {p.stem for p in parquet_files(sweep_dir)}
-    tune_dir = sweep_dir / "tune" / experiment
-    states = list(tune_dir.glob("experiment_state-*.json")) if tune_dir.is_dir() else []
-    if not done or not states:
-        return False
-    saved = max(p.stat().st_mtime for p in states)
-    return any(c.stat().st_mtime < saved for c in tune_dir.glob("*/checkpoint_*") if c.parent.name not in done)
+def checkpointed_running_trials(state_text: str) -> dict[str, int]:
+    """Trial directory name (a cell's or a pack's) -> index of its checkpoint, for each trial that a Tune
+    experiment state (the JSON text of experiment_state-*.json) holds as RUNNING with a checkpoint: the trials
+    a restore from that state continues from a checkpoint. Tune snapshots its state every few seconds and,
+    under load, well after a checkpoint appears; waiting on what the state says, not on file times, keeps the
+    kill tests from killing too early. (The checkpoint manager is pickled into the state: its newest
+    checkpoint's path is in the pickle's bytes.)"""
+    try:
+        trials = json.loads(state_text)["trial_data"]
+    except (ValueError, KeyError, TypeError):  # a state file caught mid-write
+        return {}
+    found = {}
+    for trial, meta in trials:
+        trial, meta = json.loads(trial), json.loads(meta)
+        pickled = bytes.fromhex((meta.get("checkpoint_manager") or {}).get("value", ""))
+        indices = [int(i) for i in re.findall(rb"checkpoint_(\d{6})", pickled)]
+        if trial.get("status") == "RUNNING" and indices:
+            found[trial["config"]["cell"]["name"]] = max(indices)
+    return found
+
+
+def newest_state(experiment_dir: Path) -> str:
+    """The JSON text of the newest Tune experiment state in a local experiment directory ("" when none)."""
+    states = sorted(Path(experiment_dir).glob("experiment_state-*.json"))
+    return states[-1].read_text() if states else ""
+
+
+def ray_workers_running(cell_id: str, ray_temp_dir: str) -> list[int]:
+    """Pids of the Ray workers of this test's Ray running `cell_id`: Tune moves a trial's worker into the
+    trial's working directory, named after the cell (trial_dirname_creator), also when it reuses an actor."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            cwd = os.readlink(proc / "cwd")
+        except (OSError, ValueError):
+            continue
+        if proc.name.isdigit() and cwd.startswith(ray_temp_dir) and Path(cwd).name == cell_id:
+            pids.append(int(proc.name))
+    return pids
+
+
+def hold_a_running_cell_at_its_checkpoint(read_state, checkpoint_exists, done, ray_temp: str, seconds: float,
+                                          driver: subprocess.Popen) -> str:
+    """Wait until Tune's experiment state (`read_state()`: the newest state's JSON text, or "") names a checkpoint
+    of a running cell not in `done()` that exists (`checkpoint_exists(cell, index)`), then SIGSTOP that cell's
+    workers, so that no newer checkpoint replaces (and deletes) it before the driver is killed; returns the cell.
+
+    Tune deletes a trial's older checkpoint when it registers a newer one, and uploads its experiment state to
+    remote storage asynchronously: a kill at an arbitrary moment may leave a state naming a deleted checkpoint
+    (the trial then starts over: tests/test_pack_sweep.py). Freezing the cell makes "killed while resumable"
+    a state the test waits for, not a moment it hopes to hit."""
+    deadline = time.monotonic() + seconds
+    stopped: set[str] = set()
+
+    def consistent(cells) -> set[str]:
+        named = checkpointed_running_trials(read_state())
+        return {c for c, i in named.items() if c in cells and checkpoint_exists(c, i)}
+
+    while time.monotonic() < deadline:
+        if driver.poll() is not None:
+            raise AssertionError(f"the sweep ended (exit {driver.returncode}) before a cell could be held")
+        finished = set(done())
+        if stopped and (held := consistent(stopped - finished)):
+            return sorted(held)[0]
+        for cell in consistent(set(checkpointed_running_trials(read_state())) - finished) - stopped:
+            for pid in ray_workers_running(cell, ray_temp):
+                try:
+                    os.kill(pid, signal.SIGSTOP)
+                except ProcessLookupError:
+                    continue
+                stopped.add(cell)
+        time.sleep(0.1)
+    raise AssertionError(f"no running cell with a checkpoint in Tune's state within {seconds:g} s")
 
 
 def fingerprint(root: Path) -> dict[str, str | None]:

@@ -1,18 +1,12 @@
 """`asp-dist sweep SPACE --name NAME --extend`: a sweep grown to a grid that holds every stored cell keeps its
 rows, failures and bases, trains only the new cells, and records the grid's history; anything else is one
-line. The kill test grows a finished sweep, SIGKILLs the driver mid-extension and resumes: every cell once,
-the stored rows untouched."""
+line. On Ray: tests/test_sweep.py grows the finished smoke sweep with `--extend`, SIGKILLs the driver
+mid-extension and resumes (every cell once, the stored rows untouched); tests/test_s3.py does the same on S3."""
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import signal
-
 import pytest
-from harness import (assert_rows_match, cli, expected_rows, fingerprint, kill_all, kill_group, parquet_files,
-                     resumable_mid_cell, space, start_cli, wait_for)
+from harness import fingerprint, space
 
 from asp_dist.cli import main
 from asp_dist.errors import SweepError
@@ -83,39 +77,3 @@ def test_the_cli_refuses_before_anything_is_written(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--extend keeps every cell of sweep 's'" in err[0]
     assert fingerprint(results) == before
-
-
-# ---- on Ray: grow a finished sweep, kill the driver mid-extension, resume ----------------------------------
-@pytest.mark.slow
-def test_an_extension_killed_mid_way_resumes_to_every_cell_once(tmp_path):
-    first = grid(tmp_path, "a.toml", steps=1500)
-    grown = grid(tmp_path, "b.toml", steps=1500, trials="{ first = 0, last = 2 }")
-    results = tmp_path / "results"
-    done = cli("sweep", first, "--name", "x", "--results", str(results))
-    assert done.returncode == 0, done.stderr[-3000:]
-    stored = {f: f.stat().st_mtime_ns for f in parquet_files(results / "x")}
-    assert len(stored) == 2
-
-    ray_temp = f"/tmp/asp-ex-{os.getpid()}"
-    driver = start_cli("sweep", grown, "--name", "x", "--results", str(results), "--extend", "--checkpoint-every",
-                       "0.3", "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log")
-    try:
-        wait_for(lambda: len(parquet_files(results / "x")) > 2 and resumable_mid_cell(results / "x", "run-2"), 300,
-                 while_alive=driver, what="a new cell done and another checkpointed")
-        driver.send_signal(signal.SIGKILL)
-        driver.wait(30)
-    finally:
-        kill_group(driver)
-        kill_all(driver.pid, ray_temp)
-        shutil.rmtree(ray_temp, ignore_errors=True)
-    assert 2 < len(parquet_files(results / "x")) < 6
-    manifest = json.loads((results / "x" / "manifest.json").read_text())
-    assert len(manifest["cells"]) == 6 and len(manifest["history"]) == 2  # written before any new cell ran
-
-    resumed = cli("resume", "x", "--results", str(results), "--checkpoint-every", "0.3")
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert_rows_match(store.read_rows(results / "x"), expected_rows(expand(grown)))
-    assert {f: f.stat().st_mtime_ns for f in parquet_files(results / "x") if f in stored} == stored
-    again = cli("sweep", grown, "--name", "x", "--results", str(results), "--extend")  # nothing left to add
-    assert again.returncode == 0 and "(6 already done)" in again.stderr
-    assert len(json.loads((results / "x" / "manifest.json").read_text())["history"]) == 2

@@ -32,7 +32,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from budgets import TINY, tiny_spec
-from harness import clean, cli, env, kill_group, s3_env, start_moto, stop_now
+from harness import (checkpointed_running_trials, clean, cli, env, kill_group, newest_state, s3_env, start_moto,
+                     stop_now)
 from packed_cases import DOMAINS as PACKED_DOMAINS
 from packed_cases import trainer_class
 
@@ -329,6 +330,25 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
     assert fake.reports == [{"cell_done": 1, "skipped": 1}]
 
 
+def test_a_trial_whose_checkpoint_is_gone_starts_over_instead_of_failing(trainable, tmp_path, capfd):
+    """Tune's experiment state may name a checkpoint already deleted (a newer one replaced it while the state
+    was on its way to S3): the trial trains from the start, with a warning, and writes the rows of an
+    uninterrupted run -- not a failure, not a trial lost."""
+    sweep_tune, fake = trainable
+    specs = [s for s in expand(write_space(tmp_path, signaling=False)) if s.trial == 0]
+    (unit,) = make_units(specs, Packing("trial", 21))
+    sweep_dir = tmp_path / "exp"
+    gone = tmp_path / "checkpoint_000003"
+    gone.mkdir()  # what Tune downloads for a checkpoint whose objects were deleted: an empty directory
+    fake.restore_from = gone
+    sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e9)})
+    assert "checkpoint_000003 Tune restores this trial from is gone" in capfd.readouterr().err
+    assert not store.failed_cells(sweep_dir) and fake.reports[-1]["cells_written"] == 6
+    rows = store.read_rows(sweep_dir)
+    assert rows["resumed_from_step"].isna().all()
+    assert_rows(rows, direct_rows([unit], store.bases_dir(sweep_dir)))
+
+
 @pytest.mark.parametrize("domain", PACKED_DOMAINS)
 def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path,
                                                                                        monkeypatch):
@@ -533,19 +553,15 @@ def test_a_killed_packed_sweep_resumes_each_pack_from_its_checkpoint_and_writes_
                                    "--ray-temp-dir", ray_temp], env=env(), start_new_session=True,
                                   stdout=subprocess.DEVNULL, stderr=err_fh)
     try:
-        # One worker: the first pack finishes, then the second runs; kill the driver once Tune holds its
-        # second checkpoint of the second pack (the first is complete by then).
+        # One worker: the first pack finishes, then the second runs; kill the driver once Tune's experiment state
+        # holds the second pack running with its second checkpoint (the first pack is complete by then).
         deadline = time.monotonic() + 240
-        trial_dir = sweep_dir / "tune" / "run-1" / second.name
-        while driver.poll() is None and time.monotonic() < deadline and not (
-                list(trial_dir.glob("checkpoint_000001")) and not store.is_done(
-                sweep_dir, "particles", second.specs[0].method, second.specs[0].cell_id)):
-            time.sleep(0.05)
-        # Tune restores from its experiment state, which it snapshots every few seconds: kill only after a
-        # snapshot taken since that checkpoint appeared (under load the snapshot may lag the checkpoint).
-        seen = time.time()
-        while driver.poll() is None and time.monotonic() < deadline and not any(
-                f.stat().st_mtime > seen + 0.5 for f in (sweep_dir / "tune" / "run-1").glob("experiment_state*.json")):
+
+        def second_checkpoint_in_the_state() -> bool:
+            return checkpointed_running_trials(newest_state(sweep_dir / "tune" / "run-1")).get(second.name, -1) >= 1 \
+                and not store.is_done(sweep_dir, "particles", second.specs[0].method, second.specs[0].cell_id)
+
+        while driver.poll() is None and time.monotonic() < deadline and not second_checkpoint_in_the_state():
             time.sleep(0.05)
         assert driver.poll() is None, "the sweep ended before it could be interrupted: " + err_file.read_text()[-2000:]
         driver.send_signal(signal.SIGKILL)

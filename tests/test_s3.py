@@ -11,8 +11,8 @@ once; an endpoint that does not answer, refused credentials and a missing bucket
 `resume`, `status`, `query` and `stats` with one line and exit 2, with nothing written.
 
 Slow tests (Ray): the smoke sweep with everything in the bucket (run twice: nothing rewritten),
-`status`, `query --sql` and `stats` on it; a SIGKILL of the driver and a resume that restores Tune's
-experiment from the bucket; a two-node loopback Ray cluster whose nodes share no results directory,
+`status`, `query --sql` and `stats` on it; the same sweep damaged, grown with `--extend`, its driver
+SIGKILLed mid-extension and resumed, restoring Tune's experiment from the bucket; a two-node loopback Ray cluster whose nodes share no results directory,
 and no cell file on the local disk.
 
 moto quirks worked around here (both are moto's, not S3's): with authentication switched on
@@ -42,8 +42,11 @@ from harness import (
     comparable_rows,
     expected_rows,
     free_port,
+    hold_a_running_cell_at_its_checkpoint,
+    kill_all,
     kill_group,
     ray_cluster,
+    read_log,
     s3_env,
     space,
     start_cli,
@@ -557,12 +560,20 @@ def test_query_and_stats_of_a_sweep_on_s3(s3, smoke_on_s3):
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("smoke-s3")  # shares a module fixture: one worker
-def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(s3, smoke_on_s3):
-    """The S3 twin of tests/test_sweep.py's damaged-file test: a cut-short, an empty and another cell's object
-    under a cell's key are copied into damaged/ and deleted (one warning each), the cells train again and
-    each row is written once; the other objects are not rewritten. Then `--extend` grows the sweep by a trial.
+def test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once_on_s3(s3, smoke_on_s3, tmp_path):
+    """The S3 twin of tests/test_sweep.py's test of the same name: three of the smoke sweep's cell objects
+    damaged (cut short, empty, another cell's), the sweep grown by the kill grid with `--extend` and its driver
+    SIGKILLed mid-extension, then `resume`:
+
+    - the damaged objects are copied into damaged/ and deleted (one warning each), their cells train again
+      and each row is written once; the other objects are not rewritten;
+    - the extension's grid and history are in manifest.json before any new cell runs;
+    - the dead driver's lease is seen at once (`status`: not running);
+    - resume restores Tune's experiment from the bucket: every cell once, rows as uninterrupted, a cell running
+      at the kill continued from its checkpoint, nothing on the local disk.
     Runs after the other smoke_on_s3 tests (it changes the sweep they read)."""
     from asp_dist.results import location, store
+    from asp_dist.sweep.spaces import expand
 
     run = smoke_on_s3
     assert run.proc.returncode == 0, run.proc.stderr[-3000:]
@@ -574,9 +585,9 @@ def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(
             use_env(mp, s3.env)
             df = store.read_rows(f"{run.results}/smoke")
             location._CLIENTS.clear()
-        return comparable_rows(df)
+        return df
 
-    rows = read_rows()
+    rows = comparable_rows(read_rows())
     body = {k: s3.client.get_object(Bucket=BUCKET, Key=k)["Body"].read() for k in cells[:4]}
     cut, empty, wrong = cells[:3]
     s3.client.put_object(Bucket=BUCKET, Key=cut, Body=body[cut][:200])
@@ -584,81 +595,63 @@ def test_damaged_cell_objects_are_set_aside_and_their_cells_trained_again_on_s3(
     s3.client.put_object(Bucket=BUCKET, Key=wrong, Body=body[cells[3]])
     intact = {k: v for k, v in keys(s3, f"{run.results}/smoke/cells/").items() if k not in (cut, empty, wrong)}
 
-    resumed = cli(s3, "resume", "smoke", "--results", run.results, "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    warnings = [line for line in resumed.stderr.splitlines() if "the cell trains again" in line]
-    assert len(warnings) == 3 and all(line.startswith("asp-dist: warning: s3://") for line in warnings), resumed.stderr
-    assert read_rows() == rows, "a redone cell's row differs from its first run's"
-    after = keys(s3, f"{run.results}/smoke/cells/")
-    assert {k: after[k] for k in intact} == intact, "a valid cell's object was rewritten"
-    kept = [k for k in keys(s3, f"{run.results}/smoke/{store.DAMAGED_DIR}/") if "/cells/" in k]
-    assert sorted(k.rsplit("/", 1)[1] for k in kept) == sorted(k.rsplit("/", 1)[1] for k in (cut, empty, wrong))
-    assert all(k.startswith(prefix + store.DAMAGED_DIR + "/") for k in kept)
-
-    # Last, grown by one trial with --extend: the 18 stay as they are, the 9 new cells train.
     grown = run.cwd / "smoke-grown.toml"
-    grown.write_text('include = ["smoke"]\n[[grid]]\nfixed = { train_steps = 150, unpaired_size = 256 }\n'
-                     'axes = { domain = ["signaling"], method = ["pc", "osp", "asp"], paired = [0, 2, 8], trial = [2] }\n')
-    before = keys(s3, f"{run.results}/smoke/cells/")
-    extended = cli(s3, "sweep", str(grown), "--name", "smoke", "--extend", "--results", run.results,
-                   "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
-    assert extended.returncode == 0 and "18 already done" in extended.stderr, extended.stderr[-2000:]
-    assert "27/27 cells done, 0 failed" in extended.stdout
-    now = keys(s3, f"{run.results}/smoke/cells/")
-    assert {k: now[k] for k in before} == before and len([k for k in now if k.endswith(".parquet")]) == 27
-    manifest = json.loads(s3.client.get_object(Bucket=BUCKET, Key=prefix + "manifest.json")["Body"].read())
-    assert [h["cells"] for h in manifest["history"]] == [18, 27] and len(manifest["cells"]) == 27
-
-
-@pytest.mark.slow
-def test_sigkill_of_driver_then_resume_on_s3(s3, tmp_path):
-    from asp_dist.results import location, store
-    from asp_dist.sweep.spaces import expand
-
-    grid = space(tmp_path, KILL_GRID)
-    specs = expand(grid)
-    results = f"s3://{BUCKET}/kill-runs"
-    ray_temp = f"/tmp/asp-s3k-{os.getpid()}"
-    cwd = tmp_path / "cwd"
-    cwd.mkdir()
+    grown.write_text('include = ["smoke"]\n' + KILL_GRID)
+    specs = expand(str(grown))
+    new_cells = {s.cell_id for s in expand(space(tmp_path, KILL_GRID))}
+    assert len(specs) == 22 and len(new_cells) == 4
 
     def cells_done() -> set[str]:
-        return {k.rsplit("/", 1)[1][:-8] for k in keys(s3, "kill-runs/k/cells/") if k.endswith(".parquet")}
+        return {k.rsplit("/", 1)[1][:-8] for k in keys(s3, prefix + "cells/") if k.endswith(".parquet")}
 
-    def resumable_mid_cell() -> bool:
-        """As harness.resumable_mid_cell, on the bucket (LastModified has one-second steps: strictly later)."""
-        done, objects = cells_done(), keys(s3, "kill-runs/k/tune/run-1/")
-        saved = [when for k, (_, when) in objects.items() if k.rsplit("/", 1)[1].startswith("experiment_state-")]
-        return bool(done and saved) and any(
-            when < max(saved) for k, (_, when) in objects.items() if "/checkpoint_" in k and k.split("/")[4] not in done)
+    def newest_state() -> str:
+        states = sorted(k for k in keys(s3, prefix + "tune/run-2/") if k.rsplit("/", 1)[1].startswith("experiment_state-"))
+        return s3.client.get_object(Bucket=BUCKET, Key=states[-1])["Body"].read().decode() if states else ""
 
-    driver = start_cli("sweep", grid, "--name", "k", "--results", results, "--checkpoint-every", "0.3",
-                       "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log", base_env=s3.env, cwd=cwd)
+    def checkpoint_in_the_bucket(cell: str, index: int) -> bool:
+        return bool(keys(s3, f"{prefix}tune/run-2/{cell}/checkpoint_{index:06d}/state.pt"))
+
+    ray_temp = f"/tmp/asp-s3k-{os.getpid()}"
+    driver = start_cli("sweep", str(grown), "--name", "smoke", "--extend", "--results", run.results,
+                       "--checkpoint-every", "0.3", "--ray-temp-dir", ray_temp, log_dir=tmp_path / "log",
+                       base_env=s3.env, cwd=run.cwd)
     try:
-        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state (in the bucket)
-        # knows.
-        wait_for(resumable_mid_cell, 300, poll_s=0.3, while_alive=driver,
-                 what="a finished cell and a checkpointed running one")
+        # Killed once a new cell has its row and another, still running, has a checkpoint that the bucket holds
+        # and the Tune state in the bucket names; that cell's worker is stopped first (harness).
+        wait_for(lambda: cells_done() & new_cells, 300, poll_s=0.3, while_alive=driver, what="a new cell done")
+        hold_a_running_cell_at_its_checkpoint(newest_state, checkpoint_in_the_bucket, cells_done, ray_temp, 300, driver)
         driver.send_signal(signal.SIGKILL)
         driver.wait(30)
     finally:
         kill_group(driver)
+        kill_all(driver.pid, ray_temp)
+    _, killed_err = read_log(tmp_path / "log")
+    warnings = [line for line in killed_err.splitlines() if "the cell trains again" in line]
+    assert len(warnings) == 3 and all(line.startswith("asp-dist: warning: s3://") for line in warnings), killed_err
+    kept = [k for k in keys(s3, f"{run.results}/smoke/{store.DAMAGED_DIR}/") if "/cells/" in k]
+    assert sorted(k.rsplit("/", 1)[1] for k in kept) == sorted(k.rsplit("/", 1)[1] for k in (cut, empty, wrong))
+    assert all(k.startswith(prefix + store.DAMAGED_DIR + "/") for k in kept)
+    manifest = json.loads(s3.client.get_object(Bucket=BUCKET, Key=prefix + "manifest.json")["Body"].read())
+    assert [h["cells"] for h in manifest["history"]] == [18, 22] and manifest["cells"] == [s.cell_id for s in specs]
     done_at_kill = len(cells_done())
-    assert 1 <= done_at_kill < len(specs)
-    status = cli(s3, "status", "k", "--results", results, cwd=cwd)
+    assert 15 <= done_at_kill < len(specs)
+    status = cli(s3, "status", "smoke", "--results", run.results, cwd=run.cwd)
     assert "not running" in status.stdout, status.stdout + status.stderr  # the dead driver's lease, seen at once
 
-    resumed = cli(s3, "resume", "k", "--results", results, "--checkpoint-every", "0.3", "--ray-temp-dir", ray_temp,
-                  cwd=cwd)
+    resumed = cli(s3, "resume", "smoke", "--results", run.results, "--checkpoint-every", "0.3", "--ray-temp-dir",
+                  ray_temp, cwd=run.cwd)
     subprocess.run(["rm", "-rf", ray_temp])
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert f"({done_at_kill} already done)" in resumed.stderr
-    with pytest.MonkeyPatch.context() as mp:
-        use_env(mp, s3.env)
-        df = assert_rows_match(store.read_rows(f"{results}/k"), expected_rows(specs))
-        location._CLIENTS.clear()
-    assert df["resumed_from_step"].notna().any(), "no cell continued from a checkpoint restored from the bucket"
-    assert not local_results(cwd)
+    assert f"({done_at_kill} already done)" in resumed.stderr and "22/22 cells done, 0 failed" in resumed.stdout
+    df = read_rows()
+    assert {k: v for k, v in comparable_rows(df).items() if k not in new_cells} == rows, \
+        "a redone cell's row differs from its first run's"
+    assert_rows_match(df[df["cell_id"].isin(new_cells)], expected_rows([s for s in specs if s.cell_id in new_cells]))
+    after = keys(s3, f"{run.results}/smoke/cells/")
+    assert {k: after[k] for k in intact} == intact, "a valid cell's object was rewritten"
+    assert df["resumed_from_step"].notna().any(), \
+        "no cell continued from a checkpoint restored from the bucket: " + resumed.stderr[-3000:]
+    assert not local_results(run.cwd, run.ray_temp), "result files on the local disk"
 
 
 @pytest.fixture

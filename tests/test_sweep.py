@@ -1,5 +1,5 @@
-"""The sweep service end to end on real Ray: smoke sweep (and stats / query of it by name),
-SIGKILL of the driver then resume, workers killed mid-cell, a cell that fails deterministically,
+"""The sweep service end to end on real Ray: smoke sweep (and stats / query of it by name), the smoke sweep
+damaged, extended and its driver SIGKILLed then resumed, workers killed mid-cell, a cell that fails deterministically,
 and a two-node Ray cluster on loopback.
 
 Every sweep runs as a CLI subprocess (as a user would), so a killed driver cannot take pytest
@@ -31,13 +31,16 @@ from harness import (
     comparable_rows,
     env,
     expected_rows,
+    hold_a_running_cell_at_its_checkpoint,
     kill_all,
     kill_group,
+    newest_state,
     parquet_files,
     ray_cluster,
-    resumable_mid_cell,
-    space,
+    ray_workers_running,
+    read_log,
     session_processes,
+    space,
     start_cli,
     wait_for,
     wait_until_gone,
@@ -204,83 +207,6 @@ def test_stats_and_query_find_the_sweep_by_name_under_results(smoke, tmp_path, m
     assert "18 rows" in (results / "smoke" / "report.md").read_text()
 
 
-def test_sigkill_of_driver_then_resume(tmp_path):
-    """A SIGKILLed driver leaves no process of its Ray behind (the reaper), and resume finishes its grid: every
-    cell once, the cells running at the kill continued from their checkpoints, rows as uninterrupted."""
-    grid = space(tmp_path, KILL_GRID)
-    specs = expand(grid)
-    results = tmp_path / "results"
-    ray_temp = f"/tmp/asp-sk-{os.getpid()}"  # short: Ray's socket paths live under it
-    driver = start_cli("sweep", grid, "--name", "k", "--results", str(results), "--checkpoint-every", "0.3",
-                       "--ray-temp-dir", ray_temp, "--logger", "json", "--logger", "tensorboard",
-                       log_dir=tmp_path / "log")
-    trackers = results / "k" / "trackers"
-
-    def live_points_of_a_running_cell() -> bool:  # curve points in its tracker before the cell has a row
-        done = {f.stem for f in parquet_files(results / "k")}
-        return any(f.stem.rsplit("-", 1)[-1] not in {d.rsplit("-", 1)[-1][:8] for d in done}
-                   and len(f.read_text().splitlines()) > 1 for f in trackers.glob("json/**/*.jsonl"))
-
-    try:
-        # Killed once a cell has its row and another, still running, has a checkpoint Tune's state knows and
-        # live points in its tracker.
-        wait_for(lambda: resumable_mid_cell(results / "k") and live_points_of_a_running_cell(), 300,
-                 while_alive=driver, what="a finished cell and a checkpointed running one with live points")
-        running = session_processes(driver.pid, ray_temp)
-        assert any("raylet" in c for c in running.values()), running
-        driver.send_signal(signal.SIGKILL)
-        driver.wait(30)
-        killed = time.monotonic()
-        # Before the reaper: the raylet's agents lived on for a minute after the driver, trying to reach the GCS.
-        left = wait_until_gone(driver.pid, ray_temp, 10)
-        reaper_log = Path(ray_temp, f"reaper-{driver.pid}.log")
-        assert not left, (f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}; "
-                          f"the reaper's log: {reaper_log.read_text() if reaper_log.exists() else 'none'}")
-    finally:
-        kill_group(driver)  # Ray processes the killed driver started
-        kill_all(driver.pid, ray_temp)
-        shutil.rmtree(ray_temp, ignore_errors=True)
-    done_at_kill = len(parquet_files(results / "k"))
-    assert 1 <= done_at_kill < len(specs)
-    status = cli("status", "k", "--results", str(results))
-    assert "not running" in status.stdout and f"total{'':<15}{done_at_kill:>7}" in status.stdout
-
-    resumed = cli("resume", "k", "--results", str(results), "--checkpoint-every", "0.3")  # the last run's loggers
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert f"({done_at_kill} already done)" in resumed.stderr
-    df = assert_rows_match(store.read_rows(results / "k"), expected_rows(specs))
-    # Cells running at the kill continued from their checkpoints instead of starting over.
-    assert df["resumed_from_step"].notna().any(), df[["cell_id", "resumed_from_step"]]
-    assert not store.failed_cells(results / "k")
-    # ... and their tracker runs too: every curve step once, across the killed and the resumed run.
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    from asp_dist.tracking.cells import describe_cells
-
-    curves = store.read_curves(results / "k")
-    for cell_id, cell in describe_cells(specs, "k", "?").items():
-        steps = [int(x) for x in curves.loc[curves["cell_id"] == cell_id, "step"]]
-        lines = [json.loads(x) for x in (trackers / "json" / f"{cell.run_path}.jsonl").read_text().splitlines()]
-        assert [x["step"] for x in lines if "step" in x] == steps and "final" in lines[-1], cell_id
-        acc = EventAccumulator(str(trackers / "tensorboard" / cell.run_path))
-        acc.Reload()
-        assert [e.step for e in acc.Scalars("loss/total")] == steps, cell_id
-
-
-def ray_workers_running(cell_id: str, ray_temp_dir: str) -> list[int]:
-    """Pids of the Ray workers of this test's Ray running `cell_id`: Tune moves a trial's worker into the
-    trial's working directory, named after the cell (trial_dirname_creator), also when it reuses an actor."""
-    pids = []
-    for proc in Path("/proc").iterdir():
-        try:
-            cwd = os.readlink(proc / "cwd")
-        except (OSError, ValueError):
-            continue
-        if proc.name.isdigit() and cwd.startswith(ray_temp_dir) and Path(cwd).name == cell_id:
-            pids.append(int(proc.name))
-    return pids
-
-
 def sigkill(pid: int) -> bool:
     try:
         os.kill(pid, signal.SIGKILL)
@@ -409,10 +335,18 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
-def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, tmp_path):
-    """A cell file the reader rejects (cut short, empty, another cell's, a dangling link) is moved into
-    damaged/ with one warning line and its cell trains again, its row written once; every valid cell file is
-    left as it was (same bytes, same mtime). Runs after the other smoke tests: it changes the sweep."""
+def test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once(smoke, tmp_path):
+    """The finished smoke sweep, four of its cell files damaged (cut short, empty, another cell's, a dangling
+    link), is grown by the kill grid with `--extend`, and its driver SIGKILLed mid-extension; `resume` finishes it.
+
+    - damaged files are moved into damaged/ with one warning line each and their cells train again, each row
+      written once; every valid file is left as it was (same bytes, same mtime);
+    - the extension writes its grid and history into manifest.json before any new cell runs;
+    - a SIGKILLed driver leaves no process of its Ray behind (the reaper); `status` says "not running" at once;
+    - resume: every cell once, rows as uninterrupted, the cells running at the kill continued from their
+      checkpoints, and every new cell's tracker runs (json, TensorBoard) hold each curve step once.
+    Runs after the other smoke tests: it changes the sweep. (One sweep for four behaviours: each Ray start-up
+    costs the suite 10-20 s.)"""
     results, proc, _ = smoke
     assert proc.returncode == 0, proc.stderr[-3000:]
     sweep_dir = results / "smoke"
@@ -429,15 +363,87 @@ def test_damaged_cell_files_are_set_aside_and_their_cells_trained_again(smoke, t
     status = cli("status", "smoke", "--results", str(results))
     assert status.stdout.splitlines()[-1].split() == ["total", "14", "0", "4"]
 
-    resumed = cli("resume", "smoke", "--results", str(results))
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    warnings = [line for line in resumed.stderr.splitlines() if "the cell trains again" in line]
-    assert len(warnings) == 4 and all(line.startswith("asp-dist: warning: ") for line in warnings), resumed.stderr
-    assert "18/18 cells done, 0 failed" in resumed.stdout
-    for path in (cut, empty, wrong, dangling):
-        assert path.is_file() and not path.is_symlink()
-    assert comparable_rows(store.read_rows(sweep_dir, strict=True)) == rows, "a redone cell's row differs from its first run's"
-    assert {f: (f.stat().st_mtime_ns, f.read_bytes()) for f in files[4:]} == intact, "a valid cell was rewritten"
+    grown = space(tmp_path, 'include = ["smoke"]\n' + KILL_GRID, "smoke-grown.toml")
+    specs = expand(grown)
+    new_cells = {s.cell_id for s in expand(space(tmp_path, KILL_GRID))}
+    assert len(specs) == 22 and len(new_cells) == 4
+    ray_temp = f"/tmp/asp-sk-{os.getpid()}"  # short: Ray's socket paths live under it
+    driver = start_cli("sweep", grown, "--name", "smoke", "--extend", "--results", str(results),
+                       "--checkpoint-every", "0.3", "--ray-temp-dir", ray_temp, "--logger", "json",
+                       "--logger", "tensorboard", log_dir=tmp_path / "log")
+    trackers = sweep_dir / "trackers"
+
+    def live_points_of_a_running_cell() -> bool:  # curve points in its tracker before the cell has a row
+        done = {f.stem for f in parquet_files(sweep_dir)}
+        return any(f.stem.rsplit("-", 1)[-1] not in {d.rsplit("-", 1)[-1][:8] for d in done}
+                   and len(f.read_text().splitlines()) > 1 for f in trackers.glob("json/**/*.jsonl"))
+
+    try:
+        # Killed once a new cell has its row and another, still running, has live points in its tracker and a
+        # checkpoint that Tune's state names; that cell's worker is stopped first (harness).
+        wait_for(lambda: new_cells & {f.stem for f in parquet_files(sweep_dir)} and live_points_of_a_running_cell(),
+                 300, while_alive=driver, what="a new cell done and a running one with live points")
+        hold_a_running_cell_at_its_checkpoint(
+            lambda: newest_state(sweep_dir / "tune" / "run-2"),
+            lambda cell, i: (sweep_dir / "tune" / "run-2" / cell / f"checkpoint_{i:06d}" / "state.pt").is_file(),
+            lambda: {f.stem for f in parquet_files(sweep_dir)}, ray_temp, 300, driver)
+        running = session_processes(driver.pid, ray_temp)
+        assert any("raylet" in c for c in running.values()), running
+        driver.send_signal(signal.SIGKILL)
+        driver.wait(30)
+        killed = time.monotonic()
+        # Before the reaper: the raylet's agents lived on for a minute after the driver, trying to reach the GCS.
+        left = wait_until_gone(driver.pid, ray_temp, 10)
+        reaper_log = Path(ray_temp, f"reaper-{driver.pid}.log")
+        assert not left, (f"left running {time.monotonic() - killed:.0f} s after the driver's SIGKILL: {left}; "
+                          f"the reaper's log: {reaper_log.read_text() if reaper_log.exists() else 'none'}")
+    finally:
+        kill_group(driver)  # Ray processes the killed driver started
+        kill_all(driver.pid, ray_temp)
+        shutil.rmtree(ray_temp, ignore_errors=True)
+    _, killed_err = read_log(tmp_path / "log")
+    warnings = [line for line in killed_err.splitlines() if "the cell trains again" in line]
+    assert len(warnings) == 4 and all(line.startswith("asp-dist: warning: ") for line in warnings), killed_err[-3000:]
     kept = [p for p in (sweep_dir / store.DAMAGED_DIR).rglob("*.parquet") if p.parent.parent.parent.name == "cells"]
     assert {p.stem for p in kept} == damaged and any(p.is_symlink() for p in kept)
-    assert not store.damaged_cells(sweep_dir, {s.cell_id: (s.domain, s.method) for s in expand("smoke")})
+    manifest = json.loads((sweep_dir / "manifest.json").read_text())  # written before any new cell ran
+    assert manifest["cells"] == [s.cell_id for s in specs] and [h["cells"] for h in manifest["history"]] == [18, 22]
+    done_at_kill = len(parquet_files(sweep_dir))
+    assert 14 < done_at_kill < len(specs)
+    status = cli("status", "smoke", "--results", str(results))
+    assert "not running" in status.stdout and f"total{'':<15}{done_at_kill:>7}" in status.stdout
+
+    resumed = cli("resume", "smoke", "--results", str(results), "--checkpoint-every", "0.3")  # the last run's loggers
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"({done_at_kill} already done)" in resumed.stderr and "22/22 cells done, 0 failed" in resumed.stdout
+    for path in (cut, empty, wrong, dangling):
+        assert path.is_file() and not path.is_symlink()
+    df = store.read_rows(sweep_dir, strict=True)
+    assert {k: v for k, v in comparable_rows(df).items() if k not in new_cells} == rows, \
+        "a redone cell's row differs from its first run's"
+    assert_rows_match(df[df["cell_id"].isin(new_cells)], expected_rows([s for s in specs if s.cell_id in new_cells]))
+    assert {f: (f.stat().st_mtime_ns, f.read_bytes()) for f in files[4:]} == intact, "a valid cell was rewritten"
+    assert not store.damaged_cells(sweep_dir, {s.cell_id: (s.domain, s.method) for s in specs})
+    assert not store.failed_cells(sweep_dir)
+    # Cells running at the kill continued from their checkpoints instead of starting over.
+    assert df["resumed_from_step"].notna().any(), df[["cell_id", "resumed_from_step"]]
+    # ... and their tracker runs too: every curve step once, across the killed and the resumed run (named by the
+    # grown grid: docs/tracking.md).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from asp_dist.tracking.cells import describe_cells
+
+    curves = store.read_curves(sweep_dir)
+    for cell_id, cell in describe_cells(specs, "smoke", "?").items():
+        if cell_id not in new_cells:
+            continue
+        steps = [int(x) for x in curves.loc[curves["cell_id"] == cell_id, "step"]]
+        lines = [json.loads(x) for x in (trackers / "json" / f"{cell.run_path}.jsonl").read_text().splitlines()]
+        assert [x["step"] for x in lines if "step" in x] == steps and "final" in lines[-1], cell_id
+        acc = EventAccumulator(str(trackers / "tensorboard" / cell.run_path))
+        acc.Reload()
+        assert [e.step for e in acc.Scalars("loss/total")] == steps, cell_id
+    # Nothing left to add: the same extension again trains nothing and adds no history.
+    again = cli("sweep", grown, "--name", "smoke", "--results", str(results), "--extend")
+    assert again.returncode == 0 and "(22 already done)" in again.stderr, again.stderr[-2000:]
+    assert len(json.loads((sweep_dir / "manifest.json").read_text())["history"]) == 2

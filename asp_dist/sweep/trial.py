@@ -23,6 +23,7 @@ that is removed, never a file that counts.
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -188,12 +189,25 @@ def _feed(sweep: str, cells: set[str]) -> Feed | None:
 
 
 def _restored_state() -> dict | None:
-    """The state of the trial's last checkpoint (a restarted or restored trial), else None."""
+    """The state of the trial's last checkpoint (a restarted or restored trial), else None.
+
+    A checkpoint that Tune's experiment state names may be gone: Tune deletes the older checkpoint as soon as a
+    newer one is registered (num_to_keep=1) but uploads its experiment state to remote storage asynchronously,
+    so a driver killed in between leaves a state in the bucket that names a deleted checkpoint. The cell then
+    starts over (its row is the same, only the time is lost) instead of failing its trial."""
     checkpoint = tune.get_checkpoint()
     if checkpoint is None:
         return None
-    with checkpoint.as_directory() as d:
-        return torch.load(Path(d) / "state.pt", weights_only=False)
+    try:
+        with checkpoint.as_directory() as d:
+            if (Path(d) / "state.pt").is_file():
+                return torch.load(Path(d) / "state.pt", weights_only=False)
+    except FileNotFoundError:  # nothing at all under the checkpoint's path
+        pass
+    print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from is gone (removed "
+          f"after a newer one while the experiment state was on its way to storage); the trial starts over",
+          file=sys.stderr, flush=True)
+    return None
 
 
 def _checkpointer(sweep_dir: AnyPath, name: str):
