@@ -46,6 +46,7 @@ from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import get_base, rejected_path
 from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing
 from asp_dist.sweep.spaces import expand
+from asp_dist.training.cell import run_cell
 from asp_dist.training.engines import pack_key, run_pack, supports
 from asp_dist.training.row import comparable
 from asp_dist.training.row import schema as row_schema
@@ -342,7 +343,7 @@ def test_a_trial_whose_checkpoint_is_gone_starts_over_instead_of_failing(trainab
     gone.mkdir()  # what Tune downloads for a checkpoint whose objects were deleted: an empty directory
     fake.restore_from = gone
     sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e9)})
-    assert "checkpoint_000003 Tune restores this trial from is gone" in capfd.readouterr().err
+    assert "checkpoint_000003 Tune restores this trial from holds no state" in capfd.readouterr().err
     assert not store.failed_cells(sweep_dir) and fake.reports[-1]["cells_written"] == 6
     rows = store.read_rows(sweep_dir)
     assert rows["resumed_from_step"].isna().all()
@@ -485,6 +486,10 @@ def ray_temp():
 
 @pytest.mark.slow
 def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
+    """A packed sweep of a mixed space: particle cells in packs, signaling cells alone; each cell one file of the
+    pinned schema, packed members bit for bit run_pack's and within rounding of the same cells run alone
+    (run_cell: what a single-cell sweep writes, tests/test_sweep.py), each member its own tracker run, and
+    status and query see cells, not packs."""
     grid = write_space(tmp_path, paired=(2,))  # 2 packs of 3 particle cells, 2 signaling cells alone
     specs = expand(grid)
     results = tmp_path / "results"
@@ -493,31 +498,27 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
     assert packed.returncode == 0, packed.stderr[-3000:]
     assert "8/8 cells done, 0 failed" in packed.stdout
     assert "packed (--pack trial --pack-size 21: 2 pack(s) of 3 cells + 2 single cell(s))" in packed.stderr
-    single = cli("sweep", grid, "--name", "single", "--results", str(results), "--ray-temp-dir", ray_temp)
-    assert single.returncode == 0, single.stderr[-3000:]
 
-    for name in ("packed", "single"):  # one file per cell, the pinned schema
-        files = store.cell_files(results / name, strict=True)
-        assert sorted(p.stem for p in files) == sorted(s.cell_id for s in specs)
-        assert all(pq.read_schema(p).remove_metadata() == row_schema(p.parts[-3][len("domain="):])
-                   for p in files)
+    files = store.cell_files(results / "packed", strict=True)  # one file per cell, the pinned schema
+    assert sorted(p.stem for p in files) == sorted(s.cell_id for s in specs)
+    assert all(pq.read_schema(p).remove_metadata() == row_schema(p.parts[-3][len("domain="):]) for p in files)
     units = make_units(specs, Packing("trial", 21))
     pack_of = {cid: u.pack_id for u in units for cid in u.cell_ids}
     rows = store.read_rows(results / "packed").set_index("cell_id", drop=False)
-    alone = store.read_rows(results / "single").set_index("cell_id", drop=False)
     assert {cid: clean(v) for cid, v in rows["pack"].items()} == pack_of  # null for the signaling cells: alone
-    assert alone["pack"].isna().all()
 
     # Packed members: bit for bit what run_pack gives for the same packs; within rounding of single cells.
     expected = direct_rows(units, store.bases_dir(results / "packed"))
     assert_rows(rows[rows["pack"].notna()], expected)
-    for cid, row in rows.to_dict("index").items():
-        got, one = stable(row), stable(alone.loc[cid].to_dict())
-        if pack_of[cid] is None:
-            assert got == one, cid
+    for spec in specs:
+        got, one = stable(rows.loc[spec.cell_id].to_dict()), stable(run_cell(spec))
+        assert all(v is None for k, v in got.items() if k not in one), spec.cell_id  # other domains' columns
+        got = {k: v for k, v in got.items() if k in one}
+        if pack_of[spec.cell_id] is None:
+            assert got == one, spec.cell_id
             continue
         for col in (c for c in got if c.startswith("eval_") and got[c] is not None):
-            assert got[col] == pytest.approx(one[col], rel=1e-4, abs=1e-6), (cid, col)
+            assert got[col] == pytest.approx(one[col], rel=1e-4, abs=1e-6), (spec.cell_id, col)
     curves = store.read_curves(results / "packed")
     assert len(curves.groupby("cell_id")) == 8
     # One tracker run per cell, packed members too: each its own curve, live, and its own final metrics.
@@ -530,12 +531,16 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
         assert [x["step"] for x in lines[1:-1]] == [int(s) for s in curves.loc[curves["cell_id"] == cell_id, "step"]]
         assert lines[-1]["final"]["eval_mixed"] == rows.loc[cell_id, "eval_mixed"]
 
-    # status and query see no difference.
-    status = [cli("status", n, "--results", str(results)).stdout.splitlines()[1:] for n in ("packed", "single")]
-    assert status[0] == status[1] and status[0][-1].split() == ["total", "8", "0", "0"]
-    counts = [run_query([str(results / n)], sql="SELECT domain, method, count(*) AS n FROM cells GROUP BY ALL "
-                                                 "ORDER BY ALL") for n in ("packed", "single")]
-    assert counts[0].equals(counts[1])
+    # status and query count cells, not packs.
+    status = cli("status", "packed", "--results", str(results)).stdout.splitlines()
+    assert status[-1].split() == ["total", "8", "0", "0"]
+    assert [line.split()[:2] for line in status[2:-1]] == [["particles", "asp"], ["particles", "osp"],
+                                                             ["particles", "pc"], ["signaling", "asp"],
+                                                             ["signaling", "pc"]], status
+    counts = run_query([str(results / "packed")], sql="SELECT domain, method, count(*) AS n FROM cells GROUP BY ALL "
+                                                      "ORDER BY ALL")
+    assert counts.values.tolist() == [["particles", "asp", 2], ["particles", "osp", 2], ["particles", "pc", 2],
+                                      ["signaling", "asp", 1], ["signaling", "pc", 1]]
 
 
 @pytest.mark.slow

@@ -204,9 +204,9 @@ def _restored_state() -> dict | None:
                 return torch.load(Path(d) / "state.pt", weights_only=False)
     except FileNotFoundError:  # nothing at all under the checkpoint's path
         pass
-    print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from is gone (removed "
-          f"after a newer one while the experiment state was on its way to storage); the trial starts over",
-          file=sys.stderr, flush=True)
+    print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from holds no state "
+          f"(deleted after a newer one while Tune's experiment state was on its way to storage); the trial starts "
+          f"over", file=sys.stderr, flush=True)
     return None
 
 
