@@ -95,6 +95,7 @@ def stated_figure_count(text: str) -> int:
     return int(m.group(1)) if m else 0 if "No figures" in text else -1
 
 
+@pytest.mark.xdist_group("report-html")  # shares a module fixture (one stats job): one worker
 def test_report_html_is_one_self_contained_file_with_the_content_of_report_md(report):
     html = report.read_text(encoding="utf-8")
     md = report.with_name("report.md").read_text(encoding="utf-8")
@@ -227,6 +228,7 @@ MEASURE = """JSON.stringify({
 
 @pytest.mark.skipif(chromium_binary() is None,
                     reason="no chromium on PATH (Debian: apt-get install chromium; scripts/install.sh does it as root)")
+@pytest.mark.xdist_group("report-html")  # shares a module fixture (one stats job): one worker
 def test_report_html_loads_in_headless_chromium_without_errors_and_every_figure_renders(report, tmp_path):
     browser = Chromium(chromium_binary(), tmp_path / "profile")
     try:
