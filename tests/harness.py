@@ -201,18 +201,14 @@ def hold_a_running_cell_at_its_checkpoint(read_state, checkpoint_exists, done, r
     a state the test waits for, not a moment it hopes to hit."""
     deadline = time.monotonic() + seconds
     stopped: set[str] = set()
-
-    def consistent(cells) -> set[str]:
-        named = checkpointed_running_trials(read_state())
-        return {c for c, i in named.items() if c in cells and checkpoint_exists(c, i)}
-
     while time.monotonic() < deadline:
         if driver.poll() is not None:
             raise AssertionError(f"the sweep ended (exit {driver.returncode}) before a cell could be held")
         finished = set(done())
-        if stopped and (held := consistent(stopped - finished)):
-            return sorted(held)[0]
-        for cell in consistent(set(checkpointed_running_trials(read_state())) - finished) - stopped:
+        named = {c for c, i in checkpointed_running_trials(read_state()).items() if checkpoint_exists(c, i)} - finished
+        if named & stopped:  # frozen, and the state names its checkpoint: resumable whenever the kill comes
+            return sorted(named & stopped)[0]
+        for cell in named - stopped:
             for pid in ray_workers_running(cell, ray_temp):
                 try:
                     os.kill(pid, signal.SIGSTOP)

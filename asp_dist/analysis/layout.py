@@ -9,6 +9,10 @@
   base model, the paired and unpaired sets and the initial weights, so comparisons are paired
   over blocks.
 - *score*: the metric oriented so that larger is better (negated when the rows say lower is better).
+
+The knob rule and the label format live in asp_dist.results.grouping, which the trackers share (their run
+paths name the same conditions and treatments). This module reads rows: which columns are knobs
+(CellSpec fields, in field order) and when a column varies (pandas' nunique, NaN counted as a value).
 """
 
 from __future__ import annotations
@@ -20,10 +24,11 @@ from typing import Any, Iterator, Sequence
 import pandas as pd
 
 from asp_dist.errors import SpecError
+from asp_dist.results.grouping import IDENTITY as IDENTITY  # IDENTITY, fmt_value: re-exported for the analysis
+from asp_dist.results.grouping import NOT_KNOBS, condition_label, split_knobs, treatment_label
+from asp_dist.results.grouping import fmt_value as fmt_value
 from asp_dist.spec import FIELD_NAMES
 
-IDENTITY = ("domain", "method", "paired", "trial", "root_seed")
-NOT_KNOBS = frozenset(IDENTITY) | {"record_figure_data"}
 METHOD_ORDER = ("pc", "osp", "asp")
 
 
@@ -38,9 +43,7 @@ class DomainLayout:
 
     def condition_of(self, values: dict[str, Any]) -> str:
         """The condition label of a row or spec dict (its shared knobs' values)."""
-        if not self.shared_knobs:
-            return "all"
-        return ", ".join(f"{k}={fmt_value(values.get(k))}" for k in self.shared_knobs)
+        return condition_label(self.shared_knobs, values)
 
 
 def metric_direction(rows: pd.DataFrame, metric: str) -> bool:
@@ -70,28 +73,15 @@ def metric_direction(rows: pd.DataFrame, metric: str) -> bool:
 
 
 def domain_layout(rows: pd.DataFrame, metric: str) -> DomainLayout:
+    """One domain's layout, with results.grouping's rule. Knobs are taken in CellSpec field order, and a
+    column varies when pandas' nunique(dropna=False) counts more than one value among a method's rows.
+    Methods are taken in order of appearance."""
     domain = rows["domain"].iloc[0]
     candidates = [c for c in FIELD_NAMES if c in rows.columns and c not in NOT_KNOBS]
     methods = list(rows["method"].unique())
-    shared, by_method = [], {m: [] for m in methods}
-    for col in candidates:
-        varied_in = [m for m in methods if rows.loc[rows["method"] == m, col].nunique(dropna=False) > 1]
-        if not varied_in:
-            continue
-        if len(varied_in) == len(methods):
-            shared.append(col)
-        else:
-            for m in varied_in:
-                by_method[m].append(col)
-    return DomainLayout(domain, metric_direction(rows, metric), shared, by_method)
-
-
-def fmt_value(v: Any) -> str:
-    if isinstance(v, float) and v.is_integer():
-        return str(int(v))
-    if isinstance(v, float):
-        return f"{v:g}"
-    return str(v)
+    grouping = split_knobs(methods, candidates,
+                           lambda col, m: rows.loc[rows["method"] == m, col].nunique(dropna=False) > 1)
+    return DomainLayout(domain, metric_direction(rows, metric), grouping.shared, grouping.method_only)
 
 
 def label_rows(rows: pd.DataFrame, layout: DomainLayout, metric: str) -> pd.DataFrame:
@@ -101,12 +91,8 @@ def label_rows(rows: pd.DataFrame, layout: DomainLayout, metric: str) -> pd.Data
     rows["condition"] = "all" if not layout.shared_knobs else [
         layout.condition_of(dict(zip(layout.shared_knobs, vals)))
         for vals in rows[layout.shared_knobs].itertuples(index=False, name=None)]
-    treatments = []
-    for rec in rows.to_dict("records"):
-        knobs = layout.method_knobs.get(rec["method"], [])
-        inside = ", ".join(f"{k}={fmt_value(rec[k])}" for k in knobs)
-        treatments.append(rec["method"] + (f"[{inside}]" if knobs else ""))
-    rows["treatment"] = treatments
+    rows["treatment"] = [treatment_label(rec["method"], layout.method_knobs.get(rec["method"], []), rec)
+                         for rec in rows.to_dict("records")]
     values = pd.to_numeric(rows[metric], errors="coerce").astype(float)
     rows["score"] = values if layout.higher_is_better else -values
     if "root_seed" not in rows:

@@ -9,7 +9,9 @@ driver from the plan (the resolved specs) and handed to every tracker.
     tags       trial, sweep name, code revision, cell id
     config     the resolved spec (TensorBoard HParams, MLflow params, W&B config)
 
-The same rule as asp_dist.analysis.layout, read from specs instead of rows, with no pandas.
+Condition and treatment come from asp_dist.results.grouping, the rule the analysis applies to rows, with the
+analysis's knob order (CellSpec field order), so a run path names exactly what the report shows
+(tests/test_grouping.py). Specs are read here without pandas; two values differ when their reprs do.
 """
 
 from __future__ import annotations
@@ -17,8 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-IDENTITY = ("domain", "method", "paired", "trial", "root_seed")
-NOT_KNOBS = frozenset(IDENTITY) | {"record_figure_data"}
+from asp_dist.results.grouping import IDENTITY as IDENTITY, NOT_KNOBS, Grouping, group_records
+from asp_dist.spec import FIELD_NAMES
 
 
 @dataclass(frozen=True)
@@ -63,12 +65,6 @@ def safe(part: str) -> str:
     return part.replace("/", "_").replace(", ", ",").replace(" ", "_") or "_"
 
 
-def _fmt(v: Any) -> str:
-    if isinstance(v, float) and v.is_integer():
-        return str(int(v))
-    return f"{v:g}" if isinstance(v, float) else str(v)
-
-
 def describe_cells(specs: Sequence[Any], sweep: str, revision: str,
                    metrics_of: Callable[[str], Sequence[str]] = lambda domain: ()) -> dict[str, CellInfo]:
     """One CellInfo per spec (resolved CellSpecs of one grid), by cell id; `metrics_of(domain)`: its metrics."""
@@ -76,24 +72,14 @@ def describe_cells(specs: Sequence[Any], sweep: str, revision: str,
     by_domain: dict[str, list[dict[str, Any]]] = {}
     for _, d in dicts:
         by_domain.setdefault(d["domain"], []).append(d)
-    shared: dict[str, list[str]] = {}
-    method_only: dict[tuple[str, str], list[str]] = {}
-    for domain, rows in by_domain.items():
-        methods = sorted({r["method"] for r in rows})
-        knobs = sorted({k for r in rows for k in r} - NOT_KNOBS)
-        shared[domain] = []
-        for k in knobs:
-            varied = [m for m in methods if len({repr(r.get(k)) for r in rows if r["method"] == m}) > 1]
-            if varied and len(varied) == len(methods):
-                shared[domain].append(k)
-            for m in varied if len(varied) < len(methods) else []:
-                method_only.setdefault((domain, m), []).append(k)
+    # Candidate knobs in CellSpec field order, as the analysis takes them from the row's columns.
+    groupings: dict[str, Grouping] = {domain: group_records(rows, [k for k in FIELD_NAMES if k not in NOT_KNOBS
+                                                                   and any(k in r for r in rows)])
+                                      for domain, rows in by_domain.items()}
     out = {}
     for cell_id, d in dicts:
         domain, method = d["domain"], d["method"]
-        condition = ", ".join(f"{k}={_fmt(d.get(k))}" for k in shared[domain]) or "all"
-        inside = ", ".join(f"{k}={_fmt(d.get(k))}" for k in method_only.get((domain, method), []))
-        out[cell_id] = CellInfo(cell_id, domain, method, int(d["paired"]), int(d["trial"]), condition,
-                                method + (f"[{inside}]" if inside else ""), sweep, revision, d,
-                                tuple(metrics_of(domain)))
+        g = groupings[domain]
+        out[cell_id] = CellInfo(cell_id, domain, method, int(d["paired"]), int(d["trial"]), g.condition_of(d),
+                                g.treatment_of(d), sweep, revision, d, tuple(metrics_of(domain)))
     return out
