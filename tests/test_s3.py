@@ -12,8 +12,8 @@ once; an endpoint that does not answer, refused credentials and a missing bucket
 
 Slow tests (Ray): the smoke sweep with everything in the bucket (run twice: nothing rewritten),
 `status`, `query --sql` and `stats` on it; the same sweep damaged, grown with `--extend`, its driver
-SIGKILLed mid-extension and resumed, restoring Tune's experiment from the bucket; a two-node loopback Ray cluster whose nodes share no results directory,
-and no cell file on the local disk.
+SIGKILLed mid-extension and resumed, restoring Tune's experiment from the bucket; a two-node loopback Ray
+cluster whose nodes share no results directory, and no cell file on the local disk.
 
 moto quirks worked around here (both are moto's, not S3's): with authentication switched on
 (INITIAL_NO_AUTH_ACTION_COUNT) moto miscomputes the signature of a listing whose prefix contains a
