@@ -12,7 +12,9 @@ directory every time (so every run trains every cell):
 
 Rounds alternate the order of the variants (forward, then backward) so that a drifting load hits all of
 them alike; the figure per variant is the median over rounds, and its overhead is against the median of
-the no-logger runs. W&B runs offline (WANDB_MODE=offline). Record the load average: figures taken on a busy
+the no-logger runs. Beside it, the paired view: per round, the variant's time over that round's no-logger
+time (so a slow round counts against both), the median of those ratios, and a 95 % bootstrap interval of
+that median over rounds -- the figure to hold against a budget on a noisy machine. W&B runs offline (WANDB_MODE=offline). Record the load average: figures taken on a busy
 machine say little.
 """
 
@@ -68,6 +70,18 @@ def run_once(workload: str, variant: str, space: str, work: Path) -> float:
     return seconds
 
 
+def paired_overhead(times: list[float], baseline: list[float], resamples: int = 10_000) -> dict:
+    """Round by round, `times` over the same round's `baseline`: the median ratio - 1 and a percentile
+    bootstrap 95 % interval of it over rounds (seeded: the same runs give the same interval)."""
+    import numpy as np
+
+    ratios = np.array(times) / np.array(baseline) - 1
+    rng = np.random.default_rng(0)
+    medians = np.median(rng.choice(ratios, size=(resamples, len(ratios))), axis=1)
+    return {"paired_ratios": ratios.tolist(), "paired_overhead": float(np.median(ratios)),
+            "paired_ci": [float(np.percentile(medians, 2.5)), float(np.percentile(medians, 97.5))]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2, help="rounds (alternating order); median per variant")
@@ -92,15 +106,20 @@ def main() -> None:
             base = statistics.median(times["none"]) if "none" in times else None
             out["workloads"][workload] = {
                 v: {"seconds": ts, "median_s": statistics.median(ts),
-                    "overhead": None if base is None else statistics.median(ts) / base - 1} for v, ts in times.items()}
+                    "overhead": None if base is None else statistics.median(ts) / base - 1,
+                    **({} if base is None or v == "none" else paired_overhead(ts, times["none"]))}
+                for v, ts in times.items()}
     out["load_after"] = os.getloadavg()
     print(f"load average before {load_before[0]:.2f}, after {out['load_after'][0]:.2f}")
-    print("| workload | logger | median wall (s) | runs (s) | overhead |\n|---|---|---|---|---|")
+    print("| workload | logger | median wall (s) | runs (s) | overhead | paired: median of per-round ratios (95 % CI) |"
+          "\n|---|---|---|---|---|---|")
     for workload, by in out["workloads"].items():
         for v, rec in by.items():
             over = "" if rec["overhead"] is None or v == "none" else f"{100 * rec['overhead']:+.1f} %"
+            paired = "" if "paired_overhead" not in rec else (
+                f"{100 * rec['paired_overhead']:+.1f} % ({100 * rec['paired_ci'][0]:+.1f} … {100 * rec['paired_ci'][1]:+.1f} %)")
             print(f"| {workload} | {v} | {rec['median_s']:.1f} | {', '.join(f'{t:.1f}' for t in rec['seconds'])} "
-                  f"| {over} |")
+                  f"| {over} | {paired} |")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
 
