@@ -24,9 +24,8 @@ from typing import Any, Iterator, Sequence
 import pandas as pd
 
 from asp_dist.errors import SpecError
-from asp_dist.results.grouping import IDENTITY as IDENTITY  # IDENTITY, fmt_value: re-exported for the analysis
 from asp_dist.results.grouping import NOT_KNOBS, condition_label, split_knobs, treatment_label
-from asp_dist.results.grouping import fmt_value as fmt_value
+from asp_dist.results.grouping import fmt_value as fmt_value  # re-exported: the analysis's tables format with it
 from asp_dist.spec import FIELD_NAMES
 
 METHOD_ORDER = ("pc", "osp", "asp")

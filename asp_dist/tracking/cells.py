@@ -20,7 +20,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-from asp_dist.results.grouping import IDENTITY as IDENTITY, NOT_KNOBS, Grouping, group_records
+from asp_dist.results.grouping import NOT_KNOBS, Grouping, group_records
 
 
 @dataclass(frozen=True)
