@@ -23,6 +23,7 @@ def test_each_run_gets_its_own_numbered_record(tmp_path):
     assert "resumed from the manifest: space s, 3 cells, grid hash abc" in (second / "space.toml").read_text()
     machine = json.loads((first / "machine.json").read_text())
     assert machine["cores"] >= 1 and machine["cpu_model"] and "OMP_NUM_THREADS" in machine["threads"]
+    assert machine["started_at"].endswith("+00:00")
     names = [line.split("==")[0].lower() for line in (first / "distributions.txt").read_text().split()]
     assert names == sorted(names) and {"asp-dist", "torch", "ray"} <= set(names)
 
@@ -62,3 +63,14 @@ def test_the_report_warns_when_a_sweep_mixes_code_or_has_dirty_rows():
     assert isinstance(warning, Text) and warning.md.count("**warning**") == 3
     assert "mixes 2 values of code_revision" in warning.md and "1 row(s) from a dirty tree" in warning.md
     assert provenance_blocks(pd.DataFrame({"eval_mixed": [1.0]})) == []
+
+
+def test_the_report_warns_when_a_sweep_ran_on_two_kinds_of_cpu():
+    rows = _rows(["abc"] * 3, ["2.13"] * 3).assign(cpu_model=["AMD EPYC (AVX512)", "Intel Xeon (AVX512)", None])
+    blocks = provenance_blocks(rows)
+    table = blocks[2].df
+    values = table.loc[table["column"] == "cpu_model", "values"].item()
+    assert values == "AMD EPYC (AVX512) (1), Intel Xeon (AVX512) (1), unknown (1)"
+    assert blocks[-1].md.count("**warning**") == 1 and "ran on 3 kinds of CPU" in blocks[-1].md
+    same = provenance_blocks(_rows(["abc"] * 2, ["2.13"] * 2).assign(cpu_model="Intel Xeon (AVX512)"))
+    assert "one kind of CPU" in same[-1].md

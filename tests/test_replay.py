@@ -56,6 +56,25 @@ def test_a_changed_row_is_reported_column_by_column_with_exit_1(tmp_path, capsys
     assert "1 of" in out and "| eval_mixed |" in out and "same code revision" in out
 
 
+def test_a_row_made_on_another_kind_of_cpu_says_so(tmp_path, capsys):
+    """Every row names the CPU (and torch's vector kernels) that trained it; replaying a row from another CPU
+    names both, instead of calling the difference a reproducibility bug."""
+    sweep, specs = lone_sweep(tmp_path, stored_base=True)
+    spec = specs[1]
+    path = store.cell_path(sweep, spec.domain, spec.method, spec.cell_id)
+    table = pq.read_table(path)
+    here = table.column("cpu_model")[0].as_py()
+    assert here and here.endswith(")") and "(" in here  # "<model name> (<capability>)"
+    moved = table.set_column(table.schema.get_field_index("cpu_model"), "cpu_model", [["Other CPU (AVX2)"]])
+    moved = moved.set_column(moved.schema.get_field_index("eval_mixed"), "eval_mixed",
+                             [[table.column("eval_mixed")[0].as_py() + 1e-9]])
+    pq.write_table(moved, path)
+    result = replay_cell(sweep, spec.cell_id)
+    assert [c for c, _, _ in result.differs] == ["eval_mixed"]  # cpu_model is where, not what: never "differs"
+    assert result.provenance == [("cpu_model", "Other CPU (AVX2)", here)]
+    assert "other code, packages or CPU" in result.text() and "same code revision" not in result.text()
+
+
 def test_a_packed_member_replays_with_its_pack(tmp_path):
     specs = [tiny_spec("levers", method=m, paired=p, trial=0).resolved() for m in ("pc", "osp", "asp") for p in (1, 3)]
     packing = Packing("trial", 21)

@@ -127,6 +127,10 @@ def test_smoke_sweep_end_to_end(smoke):
     assert (first / "space.toml").read_text() == space_file("smoke").read_text()
     nodes = json.loads((first / "machine.json").read_text())["ray_nodes"]
     assert len(nodes) == 1 and nodes[0]["address"] == "127.0.0.1" and nodes[0]["cpus"] >= 1
+    # A row names the run's node (ray_node_id) and the CPU that trained it (model and torch's vector kernels).
+    assert set(df["ray_node_id"]) == {nodes[0]["node_id"]}
+    cpu = json.loads((first / "machine.json").read_text())["cpu_model"]
+    assert df["cpu_model"].str.startswith(f"{cpu} (").all(), df["cpu_model"].unique()
     assert "torch==" in (first / "distributions.txt").read_text()
     # Running it again retrains nothing and touches no file; it records its own environment beside.
     mtimes = {f: f.stat().st_mtime_ns for f in files}

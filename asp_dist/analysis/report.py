@@ -229,7 +229,7 @@ def min_wilcoxon_p(n: int) -> float:
 
 # What a row records of the code and packages that made it (asp_dist.training.row, the sweep's columns).
 PROVENANCE_COLUMNS = ("code_revision", "asp_dist_version", "torch_version", "numpy_version", "python_version",
-                      "ray_version")
+                      "ray_version", "cpu_model")
 
 
 def provenance_blocks(rows: pd.DataFrame) -> list[Block]:
@@ -245,7 +245,11 @@ def provenance_blocks(rows: pd.DataFrame) -> list[Block]:
             counts = group[col].fillna("unknown").astype(str).value_counts()
             records.append({"sweep": sweep, "column": col, "rows": int(counts.sum()),
                             "values": ", ".join(f"{v} ({n})" for v, n in sorted(counts.items()))})
-            if len(counts) > 1:
+            if len(counts) > 1 and col == "cpu_model":
+                warnings.append(f"sweep {sweep} ran on {len(counts)} kinds of CPU: a row reproduces bit for bit only "
+                                f"on the kind that made it (`asp-dist replay` elsewhere differs in the last bits, "
+                                f"and chaotic training such as a particle base can then take another path)")
+            elif len(counts) > 1:
                 warnings.append(f"sweep {sweep} mixes {len(counts)} values of {col}: its rows were not all made "
                                 f"with the same code and packages")
         dirty = group["code_revision"].astype(str).str.endswith("+dirty").sum() if "code_revision" in group else 0
@@ -253,14 +257,15 @@ def provenance_blocks(rows: pd.DataFrame) -> list[Block]:
             warnings.append(f"sweep {sweep}: {dirty} row(s) from a dirty tree (uncommitted changes): the revision "
                             f"alone does not say what ran; env/<n>/git.diff in the sweep directory does")
     blocks: list[Block] = [Heading(2, "Provenance"),
-                           Text("Code revision and package versions recorded in the rows (value (rows)); each run "
+                           Text("Code revision, package versions and CPU recorded in the rows (value (rows)); each run "
                                 "of a sweep also records its command, space file, installed distributions, git "
                                 "state, CPU, threads and Ray nodes under `env/<n>/` in the sweep directory."),
                            Table(pd.DataFrame(records))]
     if warnings:
         blocks.append(Text("\n".join(f"- **warning**: {w}" for w in warnings)))
     else:
-        blocks.append(Text("One code revision and one version of each package in every sweep, none from a dirty tree."))
+        blocks.append(Text("One code revision, one version of each package and one kind of CPU in every sweep, "
+                           "none from a dirty tree."))
     return blocks
 
 

@@ -6,8 +6,9 @@
     git.diff           `git diff HEAD` of the source tree, when it is dirty
     distributions.txt  every installed distribution, name==version, sorted
     tracking.json      the live trackers of the run (--logger, their directory and URIs): a resume's default
-    machine.json       host, CPU model, cores, memory, Python, platform, thread settings (OMP/MKL/torch),
-                       and the Ray nodes of the run (address, CPUs, memory) when Ray is up
+    machine.json       host, CPU model, cores, memory, Python, platform, thread settings (OMP/MKL/torch), the
+                       run's start time, and its Ray nodes (node id, address, CPUs, memory) when Ray is up: a
+                       row's ray_node_id names the run and node that made it (the row's cpu_model, its CPU)
 
 A row already records five versions and a revision (asp_dist.training.row); this is the rest of what a
 reviewer asks for. Written once per run and never overwritten (a new number per run); on S3 the same
@@ -23,10 +24,12 @@ import platform
 import shlex
 import subprocess
 import sys
+from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from asp_dist.machine import cpu_model
 from asp_dist.results.location import AnyPath, write_replace
 
 ENV_DIR = "env"
@@ -40,16 +43,6 @@ def _git(*args: str) -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout if out.returncode == 0 else None
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _memory_gib() -> float | None:
@@ -72,16 +65,18 @@ def distributions() -> list[str]:
 def machine(ray_nodes: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """This machine and the run's thread settings (and Ray's nodes when given)."""
     info: dict[str, Any] = {
-        "host": platform.node(), "cpu_model": _cpu_model(), "cores": os.cpu_count(), "memory_gib": _memory_gib(),
+        "host": platform.node(), "cpu_model": cpu_model(), "cores": os.cpu_count(), "memory_gib": _memory_gib(),
         "python": platform.python_version(), "platform": platform.platform(),
         "threads": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
+        "started_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     torch = sys.modules.get("torch")  # the driver imports torch with Tune; report what it uses
     if torch is not None:
         info["threads"]["torch"] = torch.get_num_threads()
         info["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
     if ray_nodes is not None:
-        info["ray_nodes"] = [{"address": n.get("NodeManagerAddress"), "alive": n.get("Alive"),
+        info["ray_nodes"] = [{"node_id": n.get("NodeID"), "address": n.get("NodeManagerAddress"),
+                              "alive": n.get("Alive"),
                               "cpus": n.get("Resources", {}).get("CPU"),
                               "memory_gib": round(n.get("Resources", {}).get("memory", 0) / 2**30, 1)}
                              for n in ray_nodes]

@@ -59,7 +59,7 @@ class Replay:
             lines.append("| column | stored | replayed |\n|---|---|---|")
             lines += [f"| {c} | {_show(a)} | {_show(b)} |" for c, a, b in self.differs]
         if self.provenance:
-            lines.append("the stored row was made with other code or packages than this replay:")
+            lines.append("the stored row was made with other code, packages or CPU than this replay:")
             lines += [f"  {c}: stored {_show(a)}, now {_show(b)}" for c, a, b in self.provenance]
         elif not self.identical:
             lines.append("same code revision and package versions: a CPU with other vector kernels rounds "
@@ -153,6 +153,7 @@ def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
     differs = [(c, stored[c], replayed.get(c)) for c in columns if not _same(stored[c], replayed.get(c))]
     now = environment_columns()
     provenance = [(c, stored.get(c), now[c]) for c in ("code_revision", "asp_dist_version", "torch_version",
-                                                        "numpy_version", "python_version")
-                  if c in now and not _same(stored.get(c), now[c])]
+                                                        "numpy_version", "python_version", "cpu_model")
+                  if c in now and not _same(stored.get(c), now[c])
+                  and not (c == "cpu_model" and _missing(stored.get(c)))]  # rows older than the column
     return Replay(cell_id, how, seconds, len(columns), differs, provenance)

@@ -28,6 +28,7 @@ import pyarrow as pa
 from asp_dist import __version__
 from asp_dist.domains import DOMAINS
 from asp_dist.errors import SchemaError
+from asp_dist.machine import cpu_model
 from asp_dist.spec import FIELD_NAMES, CellSpec, field_type
 
 if TYPE_CHECKING:
@@ -39,7 +40,7 @@ LOSS_TERMS = ("self_play", "paired", "unpaired", "disc", "total")
 # Columns that legitimately differ between two runs of the same spec (time, place, resumption).
 VOLATILE_COLUMNS = frozenset(
     [f"time_{p}_{k}" for p in PHASES + ("total",) for k in ("wall_s", "cpu_s")]
-    + ["base_train_wall_s", "base_train_cpu_s", "node", "finished_at", "resumed_from_step", "base_reused"]
+    + ["base_train_wall_s", "base_train_cpu_s", "node", "cpu_model", "finished_at", "resumed_from_step", "base_reused"]
 )
 # Stored dictionary-encoded, so that hive-style directories of the same names agree with them.
 PARTITION_COLUMNS = ("domain", "method")
@@ -67,7 +68,7 @@ def _outcome_columns() -> list[tuple[str, pa.DataType]]:
     cols += [(f"loss_{k}", pa.float64()) for k in LOSS_TERMS]
     cols.append(("figure_data", pa.string()))
     cols += [(f"time_{p}_{k}", pa.float64()) for p in PHASES + ("total",) for k in ("wall_s", "cpu_s")]
-    cols += [(name, pa.string()) for name in ("node", "finished_at", "asp_dist_version", "torch_version",
+    cols += [(name, pa.string()) for name in ("node", "cpu_model", "finished_at", "asp_dist_version", "torch_version",
                                                "numpy_version", "python_version", "code_revision")]
     cols.append(("resumed_from_step", pa.int64()))
     return cols
@@ -199,6 +200,9 @@ def environment_columns() -> dict[str, Any]:
 
     return {
         "node": socket.gethostname(),
+        # The CPU and the vector kernels torch picked on it: floats reproduce bit for bit only on the same kind
+        # (docs/decisions.md, "Numerics across CPUs"). Rows written before this column read it as null.
+        "cpu_model": f"{cpu_model()} ({torch.backends.cpu.get_cpu_capability()})",
         "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "asp_dist_version": __version__,
         "torch_version": torch.__version__,
