@@ -14,8 +14,10 @@ Rounds alternate the order of the variants (forward, then backward) so that a dr
 them alike; the figure per variant is the median over rounds, and its overhead is against the median of
 the no-logger runs. Beside it, the paired view: per round, the variant's time over that round's no-logger
 time (so a slow round counts against both), the median of those ratios, and a 95 % bootstrap interval of
-that median over rounds -- the figure to hold against a budget on a noisy machine. W&B runs offline (WANDB_MODE=offline). Record the load average: figures taken on a busy
-machine say little.
+that median over rounds -- the figure to hold against a budget on a noisy machine. Beside wall time, the CPU
+seconds the whole machine spent during each run (/proc/stat), with the same paired view: steadier than wall
+time on a VM, and only meaningful on an otherwise idle machine. W&B runs offline (WANDB_MODE=offline). Record
+the load average: figures taken on a busy machine say little.
 """
 
 from __future__ import annotations
@@ -53,7 +55,17 @@ trial = { first = 0, last = 1 }
 """
 
 
-def run_once(workload: str, variant: str, space: str, work: Path) -> float:
+def machine_cpu_seconds() -> float:
+    """CPU time spent on this whole machine so far (/proc/stat: user, nice, system, irq, softirq), in seconds.
+    Taken around a run on an otherwise idle machine, it is the CPU the run cost with every process it started
+    (driver, Ray's daemons, workers, the tracker hub), which per-process accounting loses once Ray's workers
+    are reparented; far steadier than wall time on a VM, and on a saturated two-core sweep wall ≈ CPU / 2."""
+    fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq = (int(x) for x in fields[:7])
+    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
+
+
+def run_once(workload: str, variant: str, space: str, work: Path) -> tuple[float, float]:
     results = Path(tempfile.mkdtemp(prefix=f"{workload}-{variant}-", dir=work))
     cmd = [sys.executable, "-m", "asp_dist.cli", "sweep", space, "--name", "b", "--results", str(results)]
     if workload == "particles-packed":
@@ -62,12 +74,12 @@ def run_once(workload: str, variant: str, space: str, work: Path) -> float:
         cmd += ["--logger", variant]
     env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true",
                ASP_DIST_TUNE_RESULT_LOGS="0" if variant == "no-tune-logs" else "1")
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), machine_cpu_seconds()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, machine_cpu_seconds() - cpu_start
     if done.returncode != 0:
         raise SystemExit(f"{workload}/{variant} failed:\n{done.stderr[-2000:]}")
-    return seconds
+    return seconds, cpu
 
 
 def paired_overhead(times: list[float], baseline: list[float], resamples: int = 10_000) -> dict:
@@ -99,27 +111,38 @@ def main() -> None:
         (work / "particles.toml").write_text(PARTICLES)
         for workload in args.workloads.split(","):
             times: dict[str, list[float]] = {v: [] for v in variants}
+            cpus: dict[str, list[float]] = {v: [] for v in variants}
             for r in range(args.repeats):
                 for variant in variants if r % 2 == 0 else variants[::-1]:
-                    times[variant].append(run_once(workload, variant, spaces[workload], work))
-                    print(f"{workload} {variant}: {times[variant][-1]:.1f} s", file=sys.stderr)
+                    wall, cpu = run_once(workload, variant, spaces[workload], work)
+                    times[variant].append(wall)
+                    cpus[variant].append(cpu)
+                    print(f"{workload} {variant}: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
             base = statistics.median(times["none"]) if "none" in times else None
             out["workloads"][workload] = {
                 v: {"seconds": ts, "median_s": statistics.median(ts),
                     "overhead": None if base is None else statistics.median(ts) / base - 1,
-                    **({} if base is None or v == "none" else paired_overhead(ts, times["none"]))}
+                    **({} if base is None or v == "none" else paired_overhead(ts, times["none"])),
+                    "cpu_seconds": cpus[v], "median_cpu_s": statistics.median(cpus[v]),
+                    **({} if base is None or v == "none" else
+                       {f"cpu_{k}": x for k, x in paired_overhead(cpus[v], cpus["none"]).items()})}
                 for v, ts in times.items()}
     out["load_after"] = os.getloadavg()
     print(f"load average before {load_before[0]:.2f}, after {out['load_after'][0]:.2f}")
-    print("| workload | logger | median wall (s) | runs (s) | overhead | paired: median of per-round ratios (95 % CI) |"
-          "\n|---|---|---|---|---|---|")
+    print("| workload | logger | median wall (s) | overhead | paired wall: median of per-round ratios (95 % CI) "
+          "| median CPU (s) | paired CPU (95 % CI) |\n|---|---|---|---|---|---|---|")
+
+    def paired(rec: dict, prefix: str = "") -> str:
+        if f"{prefix}paired_overhead" not in rec:
+            return ""
+        lo, hi = rec[f"{prefix}paired_ci"]
+        return f"{100 * rec[f'{prefix}paired_overhead']:+.1f} % ({100 * lo:+.1f} … {100 * hi:+.1f} %)"
+
     for workload, by in out["workloads"].items():
         for v, rec in by.items():
             over = "" if rec["overhead"] is None or v == "none" else f"{100 * rec['overhead']:+.1f} %"
-            paired = "" if "paired_overhead" not in rec else (
-                f"{100 * rec['paired_overhead']:+.1f} % ({100 * rec['paired_ci'][0]:+.1f} … {100 * rec['paired_ci'][1]:+.1f} %)")
-            print(f"| {workload} | {v} | {rec['median_s']:.1f} | {', '.join(f'{t:.1f}' for t in rec['seconds'])} "
-                  f"| {over} | {paired} |")
+            print(f"| {workload} | {v} | {rec['median_s']:.1f} | {over} | {paired(rec)} | {rec['median_cpu_s']:.1f} "
+                  f"| {paired(rec, 'cpu_')} |")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
 
