@@ -20,7 +20,7 @@ import grimp
 import pytest
 
 STAGES = ["cli", "analysis", "sweep", "tracking", "results", "training", "spec", "domains", "data"]
-FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry"]
+FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry", "machine"]
 DOMAIN_CORE = ("asp_dist.domains", "asp_dist.domains.contract", "asp_dist.domains.registry")
 PLUGIN_STAGE = -2  # a built-in domain's package: above every stage
 
