@@ -363,7 +363,7 @@ def wait_for_first_row(driver, sweep_dir, seconds=300):
 def test_sigterm_stops_a_running_sweep_promptly_and_resume_finishes_it(tmp_path):
     ray_temp = f"/tmp/asp-lt-{os.getpid()}"  # short: Ray's socket paths live under it
     sweep_dir = tmp_path / "results" / "smoke"
-    driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.05")
+    driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.2")
     try:
         wait_for_first_row(driver, sweep_dir)
         driver.send_signal(signal.SIGTERM)
@@ -384,7 +384,7 @@ def test_sigterm_stops_a_running_sweep_promptly_and_resume_finishes_it(tmp_path)
     assert "not running" in ledger.sweep_status("smoke", tmp_path / "results")
 
     resumed = subprocess.run([sys.executable, "-m", "asp_dist.cli", "resume", "smoke", "--results",
-                              str(tmp_path / "results"), "--ray-temp-dir", ray_temp, "--checkpoint-every", "0.05"],
+                              str(tmp_path / "results"), "--ray-temp-dir", ray_temp, "--checkpoint-every", "0.2"],
                              env=env(), capture_output=True, text=True, timeout=420, start_new_session=True)
     try:
         assert resumed.returncode == 0, resumed.stderr[-3000:]
