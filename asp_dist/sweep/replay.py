@@ -152,8 +152,8 @@ def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
     columns = [c for c in stored if c not in skip]
     differs = [(c, stored[c], replayed.get(c)) for c in columns if not _same(stored[c], replayed.get(c))]
     now = environment_columns()
+    # A value the stored row lacks (a row older than its column, e.g. cpu_model) says nothing: not a difference.
     provenance = [(c, stored.get(c), now[c]) for c in ("code_revision", "asp_dist_version", "torch_version",
                                                         "numpy_version", "python_version", "cpu_model")
-                  if c in now and not _same(stored.get(c), now[c])
-                  and not (c == "cpu_model" and _missing(stored.get(c)))]  # rows older than the column
+                  if c in now and not _missing(stored.get(c)) and not _same(stored.get(c), now[c])]
     return Replay(cell_id, how, seconds, len(columns), differs, provenance)
