@@ -273,9 +273,9 @@ def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeyp
     def unreadable(*args, **kwargs):
         raise MNISTError("MNIST file /data/train-images.gz is unreadable (planted by the test)")
 
-    from asp_dist.sweep import trial
+    from asp_dist.training import pipeline
 
-    monkeypatch.setattr(trial, "run_unit", unreadable)
+    monkeypatch.setattr(pipeline, "run_unit", unreadable)  # what the worker's trial function calls
     sweep_tune.train_cell(config)  # returns: Tune sees a finished trial, not an error to retry
     assert reports == [({"cell_done": 0, "cells_written": 0, "cell_failed": 1, "cell_ids": spec.cell_id,
                          "pack_id": ""}, None)]

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import ray
-import torch
 from ray import tune
 
 from asp_dist.data.mnist import MNISTError
@@ -37,19 +36,23 @@ from asp_dist.errors import SpecError, StorageError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path
 from asp_dist.spec import FIELD_NAMES, CellSpec
-from asp_dist.sweep.base_cache import get_base
 from asp_dist.sweep.packing import Unit
 from asp_dist.tracking.hub import Feed, final_metrics, hub_name
-from asp_dist.training import engines
-from asp_dist.training.bases import BaseRejected
-from asp_dist.training.pipeline import run_unit, upgrade_checkpoint
+
+# torch and the training pipeline are imported by the functions a worker runs, not here: the driver imports
+# this module only to hand train_cell to Tune and to name trials, and would pay ~2 s of CPU per sweep for them.
 
 TUNE_DIR = "tune"
 CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
 DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left
 
-# Failures a retry would meet again: recorded once, the sweep goes on.
-DETERMINISTIC = (SpecError, BaseRejected, MNISTError)
+
+
+def deterministic_failures() -> tuple[type[Exception], ...]:
+    """Failures a retry would meet again: recorded once, the sweep goes on."""
+    from asp_dist.training.bases import BaseRejected
+
+    return SpecError, BaseRejected, MNISTError
 
 
 def unit_config(unit: Unit, sweep_dir: AnyPath, sweep_id: str, checkpoint_every_s: float) -> dict[str, Any]:
@@ -83,6 +86,8 @@ def trial_name(trial) -> str:
 
 def train_cell(config: dict[str, Any]) -> None:
     """The function trainable of every sweep. Keeps no state between calls: actors are reused across units."""
+    import torch
+
     torch.set_num_threads(1)
     unit = unit_from_config(config["cell"])
     try:
@@ -95,6 +100,11 @@ def train_cell(config: dict[str, Any]) -> None:
 
 def train_unit(unit: dict[str, Any]) -> None:
     """Train one unit's members without a row and write them (the module docstring's steps)."""
+    from asp_dist.sweep.base_cache import get_base
+    from asp_dist.training import engines
+    from asp_dist.training.pipeline import run_unit, upgrade_checkpoint
+
+    deterministic = deterministic_failures()
     specs = [CellSpec.from_dict(d).resolved() for d in unit["specs"]]
     sweep_dir, pack_id = as_path(unit["sweep_dir"]), unit["pack_id"]
     todo = {s.cell_id for s in specs if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)}
@@ -110,7 +120,7 @@ def train_unit(unit: dict[str, Any]) -> None:
             bases[spec.base_key], _ = get_base(spec, store.bases_dir(sweep_dir))
         except StorageError:
             raise
-        except DETERMINISTIC as e:
+        except deterministic as e:
             why = f"{type(e).__name__}: {e}"
             failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
     live = [s for s in specs if s.cell_id not in failures]
@@ -130,7 +140,7 @@ def train_unit(unit: dict[str, Any]) -> None:
                                checkpoint_every_s=unit["checkpoint_every_s"], on_points=feed)
         except StorageError:
             raise
-        except DETERMINISTIC as e:
+        except deterministic as e:
             failures.update({s.cell_id: f"{type(e).__name__}: {e}" for s in live})
     written, finals = 0, {}
     for result in results:
@@ -195,6 +205,8 @@ def _restored_state() -> dict | None:
     newer one is registered (num_to_keep=1) but uploads its experiment state to remote storage asynchronously,
     so a driver killed in between leaves a state in the bucket that names a deleted checkpoint. The cell then
     starts over (its row is the same, only the time is lost) instead of failing its trial."""
+    import torch
+
     checkpoint = tune.get_checkpoint()
     if checkpoint is None:
         return None
@@ -214,6 +226,8 @@ def _checkpointer(sweep_dir: AnyPath, name: str):
     """save(state): one checkpoint of the trial through tune.report."""
     # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
     # under the Ray temp dir (node-local scratch, pruned with its session).
+    import torch
+
     staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
 
     def save(state: dict) -> None:
