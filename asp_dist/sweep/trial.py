@@ -47,7 +47,6 @@ CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune
 DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left
 
 
-
 def deterministic_failures() -> tuple[type[Exception], ...]:
     """Failures a retry would meet again: recorded once, the sweep goes on."""
     from asp_dist.training.bases import BaseRejected

@@ -331,8 +331,8 @@ class _InterruptMark:
 @contextmanager
 def _no_callback_tag_without_usage_stats() -> Iterator[None]:
     """Tune names the run's callbacks in a usage-stats tag (ray.air._internal.usage.tag_callbacks) by importing
-    the MLflow, W&B, Comet and Aim integrations to compare classes: 3.9 s of a sweep driver's CPU (mlflow alone
-    2.7 s), also when usage stats are off and the tag is never reported. Off is asp-dist's default
+    the MLflow, W&B, Comet and Aim integrations to compare classes (≈ 2.8 s of a sweep driver's CPU: mlflow is
+    most of it), also when usage stats are off and the tag is never reported. Off is asp-dist's default
     (asp_dist/sweep/__init__.py); then the tag is skipped. With usage stats on, Ray records it as usual."""
     from ray._common.usage import usage_lib
     from ray.air._internal import usage as air_usage
