@@ -43,9 +43,13 @@ class CgroupClock:
                 return
 
     def _try(self, root: Path, counter: str, name: str) -> None:
-        here = next((line.split(":", 2)[2] for line in Path("/proc/self/cgroup").read_text().splitlines()
-                     if line.split(":", 2)[1] in ("", "cpuacct", "cpu,cpuacct", "cpuacct,cpu")
-                     and (counter == "cpu.stat") == (line.split(":", 2)[1] == "")), None)
+        v2 = counter == "cpu.stat"
+        # /proc/self/cgroup: "ID:CONTROLLERS:PATH"; cgroup v2's line has no controllers, v1's names cpuacct.
+        here = None
+        for line in Path("/proc/self/cgroup").read_text().splitlines():
+            _, controllers, path = line.split(":", 2)
+            if (controllers == "") if v2 else ("cpuacct" in controllers.split(",")):
+                here = path
         if here is None:
             return
         parent = root / here.lstrip("/")

@@ -90,14 +90,23 @@ print(len(ids) == len(DOMAINS) >= 4, light, 'torch' in sys.modules, type(agents)
     assert out.stdout.split() == ["True", "[]", "True", "asp_dist.domains.signaling.game"]
 
 
+def top_level_modules_after(code: str, **env: str) -> set[str]:
+    """Run `code` in a fresh interpreter (with `env` added to this one's); the top-level names of the modules it
+    then holds."""
+    probe = code + f"\nimport sys\nprint({MARK!r} + ','.join(sorted({{m.split('.')[0] for m in sys.modules}})))\n"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, **env})
+    lines = [line for line in out.stdout.splitlines() if line.startswith(MARK)]
+    assert lines, f"the probe printed no result:\n{out.stdout[-2000:]}\n{out.stderr[-2000:]}"
+    return set(lines[-1].removeprefix(MARK).split(","))
+
+
 TAG_PROBE = """
-import sys
 from ray import tune
 from ray.air._internal import usage as air_usage
 from asp_dist.sweep.tune import _no_callback_tag_without_usage_stats
 with _no_callback_tag_without_usage_stats():
     air_usage.tag_callbacks([tune.Callback()])
-print("IMPORTED:" + ",".join(m for m in ("mlflow", "wandb", "comet_ml") if m in sys.modules))
 """
 
 
@@ -105,18 +114,10 @@ print("IMPORTED:" + ",".join(m for m in ("mlflow", "wandb", "comet_ml") if m in 
 def test_a_sweep_driver_imports_no_tracker_library_for_ray_usage_tags_it_never_sends(enabled, imported):
     """With Ray's usage stats off (asp-dist's default), Tune's callback tag is skipped: it imports MLflow and
     W&B just to name the run's callbacks (~3 s of a driver's CPU). With them on, Tune records it as usual."""
-    out = subprocess.run([sys.executable, "-c", TAG_PROBE], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "RAY_USAGE_STATS_ENABLED": enabled})
-    lines = [x for x in out.stdout.splitlines() if x.startswith("IMPORTED:")]
-    assert lines, out.stderr[-2000:]
-    assert ("mlflow" in lines[0]) is imported, lines[0]
+    assert ("mlflow" in top_level_modules_after(TAG_PROBE, RAY_USAGE_STATS_ENABLED=enabled)) is imported
 
 
 def test_the_sweep_driver_imports_no_torch():
     """The driver hands train_cell to Tune and names trials; only the workers that train need torch (~2 s of
     CPU per sweep run: asp_dist/sweep/trial.py imports it in the functions a worker runs)."""
-    out = subprocess.run([sys.executable, "-c", "import sys, asp_dist.sweep.tune; "
-                          "print('HEAVY:' + ','.join(m for m in sys.modules if m.split('.')[0] == 'torch'))"],
-                         capture_output=True, text=True, timeout=120)
-    lines = [x for x in out.stdout.splitlines() if x.startswith("HEAVY:")]
-    assert lines == ["HEAVY:"], out.stdout[-2000:] + out.stderr[-2000:]
+    assert "torch" not in top_level_modules_after("import asp_dist.sweep.tune")

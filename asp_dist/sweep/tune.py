@@ -352,15 +352,13 @@ def _fit(tuner: tune.Tuner) -> None:
     """tuner.fit(), raising KeyboardInterrupt if Tune stopped early on a signal: Tune's own SIGINT
     handling returns normally, and the sweep must neither go on nor report a finished run."""
     if threading.current_thread() is not threading.main_thread() or os.environ.get("TUNE_DISABLE_SIGINT_HANDLER"):
-        with _no_callback_tag_without_usage_stats():
-            tuner.fit()
+        tuner.fit()
         return
     previous = signal.getsignal(signal.SIGINT)
     mark = _InterruptMark(previous)
     signal.signal(signal.SIGINT, mark)
     try:
-        with _no_callback_tag_without_usage_stats():
-            tuner.fit()
+        tuner.fit()
     finally:
         stopped_on_signal = signal.getsignal(signal.SIGINT) is mark
         signal.signal(signal.SIGINT, previous)  # also replaces a finished run's stale Tune handler
@@ -512,7 +510,7 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                     _DISK_FULL.clear()
                     with nullcontext() if address else session():
                         _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes(), tracking=options.tracking)
-                        with _trackers(plan, options.tracking, stream):
+                        with _trackers(plan, options.tracking, stream), _no_callback_tag_without_usage_stats():
                             _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
