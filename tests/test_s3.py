@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -142,6 +143,40 @@ def test_the_server_honours_conditional_puts(s3, on_s3):
     assert path.create(b"one") is True
     assert path.create(b"two") is False
     assert path.read_bytes() == b"one"
+
+
+def test_tune_storage_on_s3_sends_each_unchanged_file_once_through_tunes_own_threaded_copy(s3, on_s3, tmp_path):
+    """The filesystem a sweep hands Tune (asp_dist.sweep.tune_storage) under the copy Tune's sync runs
+    (Ray's _pyarrow_fs_copy_files: threaded for any filesystem but a bare S3FileSystem): a second sync of
+    60 files with one changed sends one PUT, and neither sync hangs (a write closed on one of Arrow's IO
+    threads must not wait for that pool)."""
+    import threading
+
+    from ray.train._internal.storage import _pyarrow_fs_copy_files
+
+    from asp_dist.results.location import as_path
+    from asp_dist.sweep.tune_storage import tune_storage
+
+    staging = tmp_path / "driver_artifacts"
+    for i in range(60):
+        (staging / f"trial-{i}").mkdir(parents=True)
+        (staging / f"trial-{i}" / "result.json").write_text(f'{{"step": {i}}}')
+    storage_path, fs = tune_storage(as_path(on_s3))
+
+    def sync() -> list[str]:
+        before = len(s3.log.read_text().splitlines())
+        done = threading.Thread(target=_pyarrow_fs_copy_files, args=(str(staging), f"{storage_path}/run-1"),
+                                kwargs=dict(destination_filesystem=fs), daemon=True)
+        done.start()
+        done.join(60)
+        assert not done.is_alive(), "the sync hangs"
+        return [line for line in s3.log.read_text().splitlines()[before:] if '"PUT ' in line and ".json " in line]
+
+    assert len(sync()) == 60
+    (staging / "trial-7" / "result.json").write_text('{"step": 70}')
+    second = sync()
+    assert len(second) == 1 and "/trial-7/result.json " in second[0], second
+    assert (as_path(on_s3) / "tune" / "run-1" / "trial-7" / "result.json").read_text() == '{"step": 70}'
 
 
 def test_store_round_trip_on_s3_equals_local(s3, on_s3, tmp_path, capsys):
@@ -516,6 +551,10 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     assert prefix + "manifest.json" in objects and prefix + "tune/current.json" in objects
     assert any(k.startswith(prefix + "tune/run-1/experiment_state-") for k in objects), "Tune's state is not in the bucket"
     assert not local_results(run.cwd, run.ray_temp), "result files on the local disk"
+    # Each trial's params.json went up once, not again at every later sync of Tune's experiment directory
+    # (asp_dist.sweep.tune_storage): 29 PUTs of them for 18 trials before.
+    puts = re.findall(r'"PUT /[^/ ]+/smoke-runs/smoke/tune/run-1/([^/ ]+)/params\.json ', s3.log.read_text())
+    assert len(puts) == 18 and len(set(puts)) == 18, sorted(puts)
     env_files = {"command.txt", "space.toml", "git.txt", "distributions.txt", "machine.json"}
     assert {k.rsplit("/", 1)[1] for k in objects if k.startswith(prefix + "env/1/")} >= env_files  # provenance
 

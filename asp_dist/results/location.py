@@ -106,13 +106,16 @@ def _clients(config: S3Config | None = None) -> dict[str, Any]:
         return _CLIENTS[key]
 
 
-def filesystem(config: S3Config | None = None) -> pafs.S3FileSystem:
-    """pyarrow's S3 filesystem for the configured endpoint (one per process). Credentials are left to
-    the AWS SDK's chain, so pickling it (Tune sends it to every worker) carries no secret."""
+def filesystem(config: S3Config | None = None, *, background_writes: bool = True) -> pafs.S3FileSystem:
+    """pyarrow's S3 filesystem for the configured endpoint (one per process and kind). Credentials are left to
+    the AWS SDK's chain, so pickling it (Tune sends it to every worker) carries no secret. Without
+    `background_writes` a write is sent from the thread that closes it, not from Arrow's IO thread pool: what
+    a filesystem written to from that pool's own threads needs (asp_dist.sweep.tune_storage)."""
     import pyarrow.fs as pafs
 
     held = _clients(config)
-    if "fs" not in held:
+    key = "fs" if background_writes else "fs-foreground-writes"
+    if key not in held:
         cfg: S3Config = held["config"]
         kwargs: dict[str, Any] = {}
         if cfg.endpoint:
@@ -120,11 +123,11 @@ def filesystem(config: S3Config | None = None) -> pafs.S3FileSystem:
             kwargs = {"endpoint_override": parts.netloc, "scheme": parts.scheme}
         # allow_delayed_open: a small object (Tune's state, a checkpoint under Arrow's part size) is sent as one
         # PutObject at close instead of a multipart upload.
-        held["fs"] = pafs.S3FileSystem(region=cfg.region, connect_timeout=CONNECT_TIMEOUT_S, allow_delayed_open=True,
-                                       request_timeout=REQUEST_TIMEOUT_S,
-                                       retry_strategy=pafs.AwsStandardS3RetryStrategy(max_attempts=MAX_ATTEMPTS),
-                                       **kwargs)
-    return held["fs"]
+        held[key] = pafs.S3FileSystem(region=cfg.region, connect_timeout=CONNECT_TIMEOUT_S, allow_delayed_open=True,
+                                      request_timeout=REQUEST_TIMEOUT_S, background_writes=background_writes,
+                                      retry_strategy=pafs.AwsStandardS3RetryStrategy(max_attempts=MAX_ATTEMPTS),
+                                      **kwargs)
+    return held[key]
 
 
 def _probe_filesystem(config: S3Config, timeout_s: float) -> pafs.S3FileSystem:

@@ -27,8 +27,9 @@ under ``failed/`` and the sweep goes on. ``resume`` retries failed cells.
 With ``--results s3://bucket/prefix`` the same flow runs on object storage: cell rows, failures, the
 manifest and the bases go to the bucket through the store, the lock is a lease (ledger), and Tune's
 experiment state and checkpoints go to ``<sweep>/tune/`` in the bucket through
-``RunConfig(storage_path=..., storage_filesystem=pyarrow S3FileSystem)``; a checkpoint is staged in
-the trial's working directory under the Ray temp dir (node-local scratch) before Tune uploads it.
+``RunConfig(storage_path=..., storage_filesystem=pyarrow S3FileSystem)``, seen through a filesystem that
+skips rewriting unchanged files (asp_dist.sweep.tune_storage); a checkpoint is staged in the trial's working
+directory under the Ray temp dir (node-local scratch) before Tune uploads it.
 
 Nothing is left behind: checkpoints are staged under the sweep's own ``tune/.ckpt-tmp/``; SIGTERM
 stops a sweep as Ctrl-C does (signals.sigterm_as_interrupt); a reaper process ends the embedded
@@ -49,7 +50,7 @@ import threading
 import time
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
-from typing import Any, Iterator, TextIO
+from typing import Iterator, TextIO
 
 import ray
 from ray import tune
@@ -57,13 +58,14 @@ from ray.tune.logger import CSVLoggerCallback, JsonLoggerCallback
 
 from asp_dist.errors import DiskFull, StorageError, is_disk_full
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, as_path, filesystem, write_replace
+from asp_dist.results.location import AnyPath, S3Path, as_path, write_replace
 from asp_dist.sweep import ledger, preflight, provenance, signals
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
 from asp_dist.sweep.spaces import grid_hash
+from asp_dist.sweep.tune_storage import tune_storage
 from asp_dist.tracking.base import TrackingSettings
 from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
 from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
@@ -238,15 +240,6 @@ def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
     return f"{newest['cell_id']}: {store.last_error_line(newest)}"
 
 
-def _tune_storage(sweep_dir: AnyPath) -> tuple[str, Any]:
-    """Where Tune keeps the sweep's experiments: (storage_path, storage_filesystem). On S3 the path is
-    ``bucket/prefix/<sweep>/tune`` on pyarrow's S3FileSystem (its endpoint from AWS_ENDPOINT_URL, its
-    credentials from each node's AWS chain: the pickled filesystem carries none)."""
-    if isinstance(sweep_dir, S3Path):
-        return (sweep_dir / TUNE_DIR).fs_path, filesystem()
-    return str(sweep_dir / TUNE_DIR), None
-
-
 def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: bool = True) -> tuple[str, bool]:
     """Name of the Tune experiment to run, and whether to restore it.
 
@@ -259,7 +252,7 @@ def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: boo
     pending_ids = {cell_id for unit in pending for cell_id in unit.cell_ids}
     if current_path.exists():
         current = json.loads(current_path.read_text())
-        storage_path, storage_fs = _tune_storage(sweep_dir)
+        storage_path, storage_fs = tune_storage(sweep_dir)
         exp_path = f"{storage_path}/{current['experiment']}"
         if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(
                 exp_path, storage_filesystem=storage_fs) and _state_readable(tune_root / current["experiment"]):
@@ -372,7 +365,7 @@ def _trainable():
 
 def _restored_tuner(sweep_dir: AnyPath, experiment: str) -> tune.Tuner:
     # Restores the stored Tune settings too (max_failures, checkpoint interval, callbacks).
-    storage_path, storage_fs = _tune_storage(sweep_dir)
+    storage_path, storage_fs = tune_storage(sweep_dir)
     return tune.Tuner.restore(f"{storage_path}/{experiment}", trainable=_trainable(), resume_unfinished=True,
                               resume_errored=True, storage_filesystem=storage_fs)
 
@@ -387,7 +380,7 @@ def _tune_result_logs() -> list:
 def _new_tuner(sweep_dir: AnyPath, callback: SweepCallback, experiment: str, pending: list[Unit], workers: int,
                max_failures: int, checkpoint_every_s: float) -> tune.Tuner:
     configs = [unit_config(u, sweep_dir, callback.name, checkpoint_every_s) for u in pending]
-    storage_path, storage_fs = _tune_storage(sweep_dir)
+    storage_path, storage_fs = tune_storage(sweep_dir)
     return tune.Tuner(
         _trainable(),
         param_space={"cell": tune.grid_search(configs)},
