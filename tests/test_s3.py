@@ -708,6 +708,10 @@ def two_nodes_without_shared_disk(s3, tmp_path):
 
 @pytest.mark.slow
 def test_two_node_cluster_with_results_on_s3_and_none_on_disk(s3, tmp_path, two_nodes_without_shared_disk):
+    """A sweep joins a two-node Ray cluster with `--address` (refused in one line without the cluster's token),
+    its cells run on both nodes, and with results on S3 nothing lands on any node's disk. (The suite's one
+    multi-node sweep: a cluster costs it two Ray start-ups, and this one covers what a cluster on a shared
+    local disk would, plus the nodes that share nothing.)"""
     from asp_dist.results import location, store
 
     cluster = two_nodes_without_shared_disk
@@ -717,6 +721,13 @@ fixed = { train_steps = 300, unpaired_size = 256 }
 axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
 """)
     results = f"s3://{BUCKET}/cluster-runs"
+    # Without the cluster's token: refused in one line, nothing written.
+    refused = cli(s3, "sweep", grid, "--name", "c", "--results", results, "--address", cluster.address,
+                  "--connect-timeout", "5", cwd=cluster.dirs["driver"])
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    errors = [line for line in refused.stderr.splitlines() if line.startswith("asp-dist: error:")]
+    assert len(errors) == 1 and "RAY_AUTH_TOKEN" in errors[0], refused.stderr[-3000:]
+    assert not keys(s3, "cluster-runs/c/"), keys(s3, "cluster-runs/c/")
     proc = cli(s3, "sweep", grid, "--name", "c", "--results", results, "--address", cluster.address, "--workers", "2",
                cwd=cluster.dirs["driver"], RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=cluster.env["RAY_AUTH_TOKEN"])
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -1,6 +1,6 @@
 """The sweep service end to end on real Ray: smoke sweep (and stats / query of it by name), the smoke sweep
-damaged, extended and its driver SIGKILLed then resumed, workers killed mid-cell, a cell that fails deterministically,
-and a two-node Ray cluster on loopback.
+damaged, extended and its driver SIGKILLed then resumed, workers killed mid-cell, a cell that fails deterministically.
+(A two-node Ray cluster on loopback: tests/test_s3.py, with results on S3.)
 
 Every sweep runs as a CLI subprocess (as a user would), so a killed driver cannot take pytest
 with it; processes started here run in their own sessions and are killed in teardown. Workers
@@ -24,7 +24,6 @@ import pyarrow.parquet as pq
 import pytest
 import sockets
 from harness import (
-    CLUSTER_TOKEN,
     KILL_GRID,
     assert_rows_match,
     cli,
@@ -36,7 +35,6 @@ from harness import (
     kill_group,
     newest_state,
     parquet_files,
-    ray_cluster,
     ray_workers_running,
     read_log,
     session_processes,
@@ -307,35 +305,6 @@ axes = { paired = [8] }
     assert not store.failed_cells(sweep_dir)
     assert (sweep_dir / "tune" / "run-2").is_dir()
     assert_rows_match(store.read_rows(sweep_dir), expected_rows(specs))
-
-
-@pytest.fixture
-def two_node_cluster():
-    with ray_cluster(["/tmp/asp-rt-h", "/tmp/asp-rt-w"]) as cluster:
-        yield cluster.address
-
-
-def test_two_node_cluster_via_address(tmp_path, two_node_cluster):
-    grid = space(tmp_path, """
-[[grid]]
-fixed = { train_steps = 300, unpaired_size = 256 }
-axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
-""")
-    # Without the cluster's token: refused in one line, nothing written.
-    results = tmp_path / "results"
-    refused = cli("sweep", grid, "--name", "c", "--results", str(results), "--address", two_node_cluster,
-                  "--connect-timeout", "5", RAY_AUTH_MODE=None, RAY_AUTH_TOKEN=None)
-    assert refused.returncode == 2, refused.stderr[-3000:]
-    errors = [line for line in refused.stderr.splitlines() if line.startswith("asp-dist: error:")]
-    assert len(errors) == 1 and "RAY_AUTH_TOKEN" in errors[0], refused.stderr[-3000:]
-    assert not (results / "c").exists()
-    proc = cli("sweep", grid, "--name", "c", "--results", str(results), "--address", two_node_cluster,
-               "--workers", "2", RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=CLUSTER_TOKEN)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"cluster {two_node_cluster}" in proc.stderr
-    df = store.read_rows(tmp_path / "results" / "c")
-    assert len(df) == 6 and df["cell_id"].is_unique
-    assert df["ray_node_id"].nunique() == 2, df[["cell_id", "ray_node_id"]]
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker

@@ -342,66 +342,23 @@ def _state(pid: int) -> bytes:
         return b"zombie"
 
 
-def start_smoke(tmp_path, ray_temp, *extra):
+def start_smoke(tmp_path, ray_temp, *extra, command=("sweep", "smoke"), results=None):
+    """`asp-dist sweep smoke` (or `command`) in the background, its stderr in tmp_path/driver.err."""
     err = open(tmp_path / "driver.err", "w")  # a file: a full pipe would block the driver
-    driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results",
-                               str(tmp_path / "results"), "--ray-temp-dir", ray_temp, *extra],
+    driver = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", *command, "--results",
+                               str(results or tmp_path / "results"), "--ray-temp-dir", ray_temp, *extra],
                               env=env(), start_new_session=True, stdout=subprocess.DEVNULL, stderr=err)
     err.close()
     return driver
 
 
-def wait_for_first_row(driver, sweep_dir, seconds=300):
+def wait_for_rows(driver, sweep_dir, more_than: int = 0, seconds=300):
+    """Until the sweep holds more than `more_than` cell files; the driver must still be running then."""
     deadline = time.monotonic() + seconds
-    while not parquet_files(sweep_dir) and time.monotonic() < deadline and driver.poll() is None:
+    while len(parquet_files(sweep_dir)) <= more_than and time.monotonic() < deadline and driver.poll() is None:
         time.sleep(0.1)
     assert driver.poll() is None, "the sweep ended before it could be stopped"
-    assert parquet_files(sweep_dir), "no cell finished in time"
-
-
-@pytest.mark.slow
-def test_sigterm_stops_a_running_sweep_promptly_and_resume_finishes_it(tmp_path):
-    ray_temp = f"/tmp/asp-lt-{os.getpid()}"  # short: Ray's socket paths live under it
-    sweep_dir = tmp_path / "results" / "smoke"
-    driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.2")
-    try:
-        wait_for_first_row(driver, sweep_dir)
-        driver.send_signal(signal.SIGTERM)
-        stopped = time.monotonic()
-        try:
-            code = driver.wait(30)
-        except subprocess.TimeoutExpired:
-            pytest.fail("the sweep did not stop within 30 s of SIGTERM")
-        err = (tmp_path / "driver.err").read_text()
-        assert code == 128 + signal.SIGTERM, err[-3000:]
-        assert "asp-dist: interrupted (SIGTERM); finished cells are kept: asp-dist resume smoke" in err
-        left = wait_until_gone(driver.pid, ray_temp, 10)
-        assert not left, f"left running {time.monotonic() - stopped:.0f} s after SIGTERM: {left}"
-    finally:
-        kill_all(driver.pid, ray_temp)
-    first = {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)}
-    assert 1 <= len(first) < 18
-    assert "not running" in ledger.sweep_status("smoke", tmp_path / "results")
-
-    resumed = subprocess.run([sys.executable, "-m", "asp_dist.cli", "resume", "smoke", "--results",
-                              str(tmp_path / "results"), "--ray-temp-dir", ray_temp, "--checkpoint-every", "0.2"],
-                             env=env(), capture_output=True, text=True, timeout=420, start_new_session=True)
-    try:
-        assert resumed.returncode == 0, resumed.stderr[-3000:]
-        assert "18/18 cells done, 0 failed" in resumed.stdout
-    finally:
-        import shutil
-
-        shutil.rmtree(ray_temp, ignore_errors=True)
-    files = parquet_files(sweep_dir)
-    df = store.read_rows(sweep_dir)
-    assert len(files) == 18 and len(df) == 18 and df["cell_id"].is_unique  # every cell exactly once
-    assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")}
-    assert all(f.stat().st_mtime_ns == m for f, m in first.items()), "a finished cell was written again"
-    assert not store.failed_cells(sweep_dir)
-    assert list((sweep_dir / "tune").glob("run-*/*/checkpoint_*")), "no checkpoint was taken"
-    staging = sweep_dir / "tune" / ".ckpt-tmp"
-    assert not staging.exists() or not any(staging.iterdir()), "staged checkpoints were left behind"
+    assert len(parquet_files(sweep_dir)) > more_than, "no cell finished in time"
 
 
 def _comm(pid: int) -> str:
@@ -458,9 +415,15 @@ def tiny_disk(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_full_disk_stops_the_sweep_in_one_line_and_resume_finishes_it(tmp_path, tiny_disk):
+def test_a_full_disk_and_a_sigterm_each_stop_the_sweep_in_one_line_and_resume_finishes_it(tmp_path, tiny_disk):
+    """A sweep that fills its disk stops in one line (exit 2, no traceback, every row it kept whole). Given space,
+    its `resume` is stopped by SIGTERM after a cell: promptly, exit 143 and the interrupt's one line, no process
+    of its Ray left, `status` says "not running". The next `resume` finishes it: every cell once, no finished
+    cell rewritten, checkpoints taken and none left staged. (One sweep for both stops: a Ray start-up and a
+    smoke sweep's cells cost the suite ≈ 30 CPU-s.)"""
     results = tiny_disk / "results"
-    ray_temp = f"/tmp/asp-lf-{os.getpid()}"
+    sweep_dir = results / "smoke"
+    ray_temp = f"/tmp/asp-lf-{os.getpid()}"  # short: Ray's socket paths live under it
 
     def run(*args):
         return subprocess.run([sys.executable, "-m", "asp_dist.cli", *args, "--results", str(results),
@@ -471,15 +434,36 @@ def test_a_full_disk_stops_the_sweep_in_one_line_and_resume_finishes_it(tmp_path
         full = run("sweep", "smoke")
         assert full.returncode == 2, full.stderr[-3000:]
         errors = [line for line in full.stderr.splitlines() if line.startswith("asp-dist: error:")]
-        assert len(errors) == 1 and "no space left" in errors[0] and str(results / "smoke") in errors[0], full.stderr
+        assert len(errors) == 1 and "no space left" in errors[0] and str(sweep_dir) in errors[0], full.stderr
         assert "Traceback" not in full.stderr and len(full.stderr.splitlines()) < 10, full.stderr[-3000:]
-        kept = parquet_files(results / "smoke")
-        assert 0 < len(kept) < 18
-        assert len(store.read_rows(results / "smoke", strict=True)) == len(kept), "a partial file was counted"
+        kept = parquet_files(sweep_dir)
+        assert 0 < len(kept) < 17, f"{len(kept)} cells fit: too few left to stop a resume between two of them"
+        assert len(store.read_rows(sweep_dir, strict=True)) == len(kept), "a partial file was counted"
         first = {f: f.stat().st_mtime_ns for f in kept}
 
         subprocess.run(["mount", "-o", "remount,size=64m", str(tiny_disk)], check=True)
-        resumed = run("resume", "smoke")
+        driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.2", command=("resume", "smoke"),
+                             results=results)
+        try:
+            wait_for_rows(driver, sweep_dir, more_than=len(kept))
+            driver.send_signal(signal.SIGTERM)
+            stopped = time.monotonic()
+            try:
+                code = driver.wait(30)
+            except subprocess.TimeoutExpired:
+                pytest.fail("the sweep did not stop within 30 s of SIGTERM")
+            err = (tmp_path / "driver.err").read_text()
+            assert code == 128 + signal.SIGTERM, err[-3000:]
+            assert "asp-dist: interrupted (SIGTERM); finished cells are kept: asp-dist resume smoke" in err
+            left = wait_until_gone(driver.pid, ray_temp, 10)
+            assert not left, f"left running {time.monotonic() - stopped:.0f} s after SIGTERM: {left}"
+        finally:
+            kill_all(driver.pid, ray_temp)
+        first.update({f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir) if f not in first})
+        assert len(kept) < len(first) < 18
+        assert "not running" in ledger.sweep_status("smoke", results)
+
+        resumed = run("resume", "smoke", "--checkpoint-every", "0.2")
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert "Traceback" not in resumed.stderr, resumed.stderr[-3000:]
         assert "18/18 cells done, 0 failed" in resumed.stdout
@@ -487,6 +471,12 @@ def test_a_full_disk_stops_the_sweep_in_one_line_and_resume_finishes_it(tmp_path
         import shutil
 
         shutil.rmtree(ray_temp, ignore_errors=True)
-    df = store.read_rows(results / "smoke", strict=True)
-    assert len(df) == 18 and df["cell_id"].is_unique
+    files = parquet_files(sweep_dir)
+    df = store.read_rows(sweep_dir, strict=True)
+    assert len(files) == 18 and len(df) == 18 and df["cell_id"].is_unique  # every cell exactly once
+    assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")}
     assert all(f.stat().st_mtime_ns == m for f, m in first.items()), "a finished cell was written again"
+    assert not store.failed_cells(sweep_dir)
+    assert list((sweep_dir / "tune").glob("run-*/*/checkpoint_*")), "no checkpoint was taken"
+    staging = sweep_dir / "tune" / ".ckpt-tmp"
+    assert not staging.exists() or not any(staging.iterdir()), "staged checkpoints were left behind"
