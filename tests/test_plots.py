@@ -6,12 +6,26 @@ import json
 
 import numpy as np
 import pandas as pd
+import pytest
 from test_stats import make_rows, write_sweep
 
 from asp_dist.analysis.job import compute
 from asp_dist.analysis.plots import plot_all
 from asp_dist.analysis.tables import StatsConfig
 from asp_dist.cli import main, run_stats_job
+
+
+@pytest.fixture
+def figures_not_rendered(monkeypatch):
+    """For a test of which figures are drawn and in what order: each is built, then closed unrendered (a
+    curve figure of eight panels takes a second to render; other tests here check the files)."""
+    from asp_dist.analysis import plots
+
+    def close(fig, out_dir, stem):
+        plots.plt.close(fig)
+        return []
+
+    monkeypatch.setattr(plots, "save_figure", close)
 
 
 def _nonempty(paths):
@@ -149,7 +163,7 @@ def test_learning_curve_figures_from_a_sweep_but_not_from_merged_parquet(tmp_pat
     assert "learning curve" not in report.read_text()
 
 
-def test_curve_figures_are_capped_per_domain(tmp_path):
+def test_curve_figures_are_capped_per_domain(tmp_path, figures_not_rendered):
     from asp_dist.analysis.plots import MAX_CURVE_FIGURES_PER_DOMAIN, plot_curves
 
     rng = np.random.default_rng(2)
@@ -179,7 +193,7 @@ def test_curve_figures_from_real_cells(tmp_path, tiny):
     assert {"signaling_curve_d_fake", "signaling_curve_probe_mixed"} <= drawn, drawn
 
 
-def test_curve_figures_under_the_cap_start_with_the_condition_of_most_paired_counts(tmp_path):
+def test_curve_figures_under_the_cap_start_with_the_condition_of_most_paired_counts(tmp_path, figures_not_rendered):
     """A paired-count grid beside a knob grid at one count (the VAE's two grids): the figures kept
     under the cap are first those of the condition with panels to compare."""
     from asp_dist.analysis.plots import plot_curves
