@@ -70,6 +70,9 @@ MUTATIONS = (
              "    restore = _restored_state()\n    if restore is not None:\n",
              "    restore = None\n    if restore is not None:\n",
              ("tests/test_sweep.py::test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once",)),
+    Mutation("Tune's S3 sync skips a file that changed (the bucket keeps a stale experiment state)",
+             "asp_dist/sweep/tune_storage.py", "            if self._written.get(path) == digest:",
+             "            if path in self._written:", ("tests/test_tune_storage.py",)),
 )
 
 
