@@ -233,6 +233,8 @@ class DiskFullStopper(tune.Stopper):
 
 def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
     """The newest failure of the grid, as "cell id: last line of its error"."""
+    if not failed:  # the common case: no listing of failed/ (on S3 a request at every trial's start and end)
+        return ""
     records = [r for cell_id, r in store.failed_cells(sweep_dir).items() if cell_id in failed]
     if not records:
         return ""
