@@ -173,7 +173,9 @@ class _HeldWrite:
             self.stream.write(data)
         else:
             self.held.write(data)
-            if self.held.tell() > HELD_BYTES:  # too big to hold: write it as it comes, remember nothing
+            # Too big to hold: write it as it comes and remember nothing. Not under the owner's _send lock (a
+            # stream dropped unclosed would hold it for ever), so such a write may overlap one small write.
+            if self.held.tell() > HELD_BYTES:
                 self.owner.forget(self.path)
                 self.stream = self.owner.fs.open_output_stream(self.path, metadata=self.metadata)
                 self.stream.write(self.held.getbuffer())
