@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
-from harness import env, fingerprint, free_port, kill_all, parquet_files, session_processes, wait_until_gone
+from harness import env, fingerprint, free_port, kill_all, parquet_files, session_processes, wait_for, wait_until_gone
 
 from asp_dist import cli
 from asp_dist.data.mnist import MNISTError
@@ -352,15 +352,6 @@ def start_smoke(tmp_path, ray_temp, *extra, command=("sweep", "smoke"), results=
     return driver
 
 
-def wait_for_rows(driver, sweep_dir, more_than: int = 0, seconds=300):
-    """Until the sweep holds more than `more_than` cell files; the driver must still be running then."""
-    deadline = time.monotonic() + seconds
-    while len(parquet_files(sweep_dir)) <= more_than and time.monotonic() < deadline and driver.poll() is None:
-        time.sleep(0.1)
-    assert driver.poll() is None, "the sweep ended before it could be stopped"
-    assert len(parquet_files(sweep_dir)) > more_than, "no cell finished in time"
-
-
 def _comm(pid: int) -> str:
     try:
         return Path(f"/proc/{pid}/comm").read_text().strip()
@@ -445,7 +436,8 @@ def test_a_full_disk_and_a_sigterm_each_stop_the_sweep_in_one_line_and_resume_fi
         driver = start_smoke(tmp_path, ray_temp, "--checkpoint-every", "0.2", command=("resume", "smoke"),
                              results=results)
         try:
-            wait_for_rows(driver, sweep_dir, more_than=len(kept))
+            wait_for(lambda: len(parquet_files(sweep_dir)) > len(kept), 300, poll_s=0.1, while_alive=driver,
+                     what="a cell of the resume finished")
             driver.send_signal(signal.SIGTERM)
             stopped = time.monotonic()
             try:
