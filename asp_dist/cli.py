@@ -103,10 +103,11 @@ def cmd_cell(args: argparse.Namespace) -> int:
             raise SpecError(f"{out} already exists; finished results are never overwritten — choose another --out")
         check_output_file(out)
     check_data([spec])
-    from asp_dist.training import torch_runtime
+    import torch
+
     from asp_dist.training.cell import run_cell
 
-    torch_runtime.prepare(threads=args.threads)
+    torch.set_num_threads(args.threads)
     try:
         row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
     except (MemoryError, RuntimeError) as e:  # within CellSpec's size estimates, yet too big for this machine

@@ -21,6 +21,18 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def expected_rows_shared_by_workers(tmp_path_factory):
+    """Under xdist, the rows of uninterrupted runs (harness.expected_rows) are computed by one worker and read by
+    the others, through the run's common temp dir (pytest keeps the last three)."""
+    import harness
+
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        harness.SHARED_EXPECTED_DIR = tmp_path_factory.getbasetemp().parent / "expected-rows"
+    yield
+    harness.SHARED_EXPECTED_DIR = None
+
+
 @pytest.fixture
 def tiny():
     """tiny(domain, **changes): a CellSpec of `domain` with every budget shrunk (tests/budgets.py)."""

@@ -12,6 +12,7 @@ import hashlib
 import json
 import math
 import os
+import pickle
 import re
 import secrets
 import signal
@@ -234,18 +235,40 @@ def clean(value: Any) -> Any:
 
 
 _EXPECTED: dict[str, dict[str, Any]] = {}  # cell id -> its uninterrupted row (this process)
+# Where the xdist workers of one run share those rows (conftest sets it; None: this process only). The disk and
+# S3 kill tests run the same grid, and the killed-worker test one of its cells, usually on different workers.
+SHARED_EXPECTED_DIR: Path | None = None
 
 
 def expected_rows(specs) -> dict[str, dict[str, Any]]:
     """The rows an uninterrupted run_cell gives, without volatile and place columns; computed once per cell
-    and test process (the disk and the S3 kill tests run the same grid)."""
+    and test run (the rows are deterministic: whichever worker computes a cell, the others read it)."""
+    for s in specs:
+        if s.cell_id not in _EXPECTED:
+            _EXPECTED[s.cell_id] = _shared_expected_row(s) if SHARED_EXPECTED_DIR else _expected_row(s)
+    return {s.cell_id: _EXPECTED[s.cell_id] for s in specs}
+
+
+def _expected_row(spec) -> dict[str, Any]:
     from asp_dist.training.cell import run_cell
     from asp_dist.training.row import comparable
 
-    for s in specs:
-        if s.cell_id not in _EXPECTED:
-            _EXPECTED[s.cell_id] = {k: clean(v) for k, v in comparable(run_cell(s)).items() if k not in PLACE_COLUMNS}
-    return {s.cell_id: _EXPECTED[s.cell_id] for s in specs}
+    return {k: clean(v) for k, v in comparable(run_cell(spec)).items() if k not in PLACE_COLUMNS}
+
+
+def _shared_expected_row(spec) -> dict[str, Any]:
+    """The cell's row from the run's shared directory, computed here first if no worker has (under a lock:
+    a worker that asks while another computes waits for it instead of training the cell again)."""
+    from filelock import FileLock
+
+    SHARED_EXPECTED_DIR.mkdir(parents=True, exist_ok=True)
+    path = SHARED_EXPECTED_DIR / f"{spec.cell_id}.pickle"
+    with FileLock(f"{path}.lock", timeout=900):
+        if not path.is_file():
+            row = _expected_row(spec)
+            path.with_suffix(".tmp").write_bytes(pickle.dumps(row))
+            path.with_suffix(".tmp").replace(path)
+        return pickle.loads(path.read_bytes())
 
 
 def comparable_rows(df) -> dict[str, dict[str, Any]]:

@@ -113,7 +113,8 @@ def _base(spec: CellSpec, sweep_dir: AnyPath) -> BaseModel:
 
 def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
     """Train `cell_id` of the sweep in `sweep_dir` again as it was trained, and compare the rows."""
-    from asp_dist.training import torch_runtime
+    import torch
+
     from asp_dist.training.cell import run_cell
     from asp_dist.training.engines import run_pack
     from asp_dist.training.row import environment_columns
@@ -131,7 +132,7 @@ def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
         raise SweepError(f"cell {cell_id} no longer resolves to its id with this code (now {spec.cell_id}): its "
                          f"spec or a domain default changed, so it cannot be replayed as it was")
     stored = _stored_row(sweep_dir, cell_id, spec.domain, spec.method)
-    torch_runtime.prepare(threads=1)
+    torch.set_num_threads(1)
     t0 = time.perf_counter()
     if stored.get("pack"):
         units = [u for u in make_units(specs, stored_packing(manifest)) if cell_id in u.cell_ids]

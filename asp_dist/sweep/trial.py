@@ -85,9 +85,9 @@ def trial_name(trial) -> str:
 
 def train_cell(config: dict[str, Any]) -> None:
     """The function trainable of every sweep. Keeps no state between calls: actors are reused across units."""
-    from asp_dist.training import torch_runtime
+    import torch
 
-    torch_runtime.prepare(threads=1)
+    torch.set_num_threads(1)
     unit = unit_from_config(config["cell"])
     try:
         train_unit(unit)

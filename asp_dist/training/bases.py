@@ -44,6 +44,9 @@ def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> B
     just another draw of a budget that was too small."""
     import time
 
+    from asp_dist.training.torch_runtime import keep_dynamo_unloaded
+
+    keep_dynamo_unloaded()
     spec = spec.resolved()
     domain = get_domain(spec.domain)
     bar = getattr(spec, domain.accept_field) if domain.accept_field else None

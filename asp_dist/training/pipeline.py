@@ -30,6 +30,7 @@ from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
 from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
 from asp_dist.training.row import build_row
+from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
 # The one checkpoint format of cells and packs: {"version", "engine", "cell_ids", "trainer", "timings"}.
 # 3: one format for both (before: a cell's v1/v2 with "cell_id", a pack's v1 without "engine"): upgrade_checkpoint.
@@ -157,6 +158,7 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
 
     Returns one CellResult per spec, in order. Phase timings in a member's row: base, data and
     eval are its own; train is the unit's training time divided by the number of members."""
+    keep_dynamo_unloaded()
     specs = [s.resolved() for s in specs]
     if not specs:
         return []

@@ -1,4 +1,4 @@
-"""The torch of a process that trains cells: one thread where asked, and no torch._dynamo unless something compiles.
+"""Training without importing torch._dynamo, unless something else does (a plugin calling torch.compile).
 
 torch.optim imports torch._dynamo -- sympy, the fx and export stacks: ≈ 2 CPU-s on the 2-core VM of
 docs/performance.md, as much as torch itself -- at the first call of two kinds of wrapper, only to keep the
@@ -10,7 +10,8 @@ compiler out of the optimizer:
   and a ``torch._dynamo.graph_break()`` before and after.
 
 Outside compilation both marks do nothing, and nothing compiles without torch._dynamo loaded; yet every Ray
-worker, every `asp-dist cell` and every replay paid the import. ``keep_dynamo_unloaded`` makes both kinds call
+worker, every `asp-dist cell` and every replay paid the import. ``keep_dynamo_unloaded`` (called where a base
+or a unit starts training: bases.train_accepted_base, pipeline.run_unit) makes both kinds call
 the method itself while torch._dynamo is not loaded and hand over to torch's own wrapping once anything has
 loaded it (a plugin calling torch.compile): the first kind through the cache torch's wrapper looks in
 (``fn.__dynamo_disable``, filled as torch would fill it at hand-over), the second by a ``step`` of the same
@@ -30,25 +31,22 @@ import torch.optim
 from torch.optim import optimizer
 
 CACHE_ATTRIBUTE = "__dynamo_disable"  # where torch._compile._disable_dynamo's wrapper caches its disabled function
-
-
-def prepare(threads: int | None = None) -> None:
-    """What a process that trains cells sets up before its first optimizer: its torch threads, no dynamo import."""
-    if threads is not None:
-        torch.set_num_threads(threads)
-    keep_dynamo_unloaded()
+COVERED = "_steps_directly_until_dynamo_loads"  # marks a step this module put in place of torch's wrapper
 
 
 def keep_dynamo_unloaded() -> int:
-    """Make torch's optimizers load torch._dynamo only once something else has. Returns how many methods are
-    covered (0: torch's wrappers are not the known shape; nothing was changed)."""
+    """Make torch's optimizers load torch._dynamo only once something else has (idempotent, ≈ 0.1 ms). Returns
+    how many methods are covered (0: torch's wrappers are not the known shape; nothing was changed)."""
     covered = 0
     for fn, recursive in dynamo_disabled_methods():
         if getattr(fn, CACHE_ATTRIBUTE, None) is None:
             setattr(fn, CACHE_ATTRIBUTE, _called_directly_until_dynamo_loads(fn, recursive))
         covered += 1
-    for cls, torch_step in grad_mode_steps():
-        setattr(cls, "step", _stepped_directly_until_dynamo_loads(torch_step))
+    for cls, step in grad_mode_steps():
+        if not getattr(step, COVERED, False):
+            if getattr(vars(cls)["step"], "hooked", False):
+                continue  # an optimizer of this class exists already: its hooks hold torch's step (pays the import)
+            setattr(cls, "step", _stepped_directly_until_dynamo_loads(step))
         covered += 1
     return covered
 
@@ -83,15 +81,17 @@ def _called_directly_until_dynamo_loads(fn: Callable, recursive: bool) -> Callab
 
 # ---- _use_grad_for_differentiable -----------------------------------------------------------------
 def grad_mode_steps() -> Iterator[tuple[type, Callable]]:
-    """(class, its step as torch wrapped it) for each optimizer class whose own step is still torch's
-    grad-mode wrapper (not yet wrapped again by an optimizer's first __init__, which adds its hooks)."""
+    """(class, its own step) for each optimizer class whose step is torch's grad-mode wrapper or this module's
+    stand-in for it, seen through the hooks that the class's first __init__ wraps around it."""
     wrapper = optimizer._use_grad_for_differentiable(lambda: None).__code__
     if not ({"graph_break", "set_grad_enabled", "is_grad_enabled", "defaults"} <= set(wrapper.co_names)
             and "differentiable" in wrapper.co_consts):
         return  # another torch: its grad-mode rule may differ from the one below
     for cls in _subclasses(torch.optim.Optimizer):
         step = vars(cls).get("step")
-        if getattr(step, "__code__", None) is wrapper and not getattr(step, "hooked", False):
+        if getattr(step, "hooked", False):
+            step = step.__wrapped__  # functools.wraps in Optimizer.profile_hook_step
+        if getattr(step, "__code__", None) is wrapper or getattr(step, COVERED, False):
             yield cls, step
 
 
@@ -105,6 +105,7 @@ def _stepped_directly_until_dynamo_loads(torch_step: Callable) -> Callable:
         with torch.set_grad_enabled(self.defaults["differentiable"]):  # torch's rule, without the graph breaks
             return step(self, *args, **kwargs)
 
+    setattr(_use_grad, COVERED, True)
     return _use_grad
 
 
