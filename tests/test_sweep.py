@@ -57,8 +57,8 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
     """`asp-dist sweep smoke --logger tensorboard --logger json` (18 tiny signaling cells), run once for the tests
-    that read it. While it runs, the listening TCP sockets of its whole process tree are sampled
-    (test_sweep_listens_on_loopback_only)."""
+    that read it. While it runs, the listening TCP sockets of its whole process tree and the names of its Ray
+    worker processes are sampled (test_sweep_listens_on_loopback_only)."""
     results = tmp_path_factory.mktemp("smoke-results")
     logs = tmp_path_factory.mktemp("smoke-logs")
     with open(logs / "out", "w+") as out, open(logs / "err", "w+") as err:  # files: a full pipe cannot stall it
@@ -66,19 +66,29 @@ def smoke(tmp_path_factory):
                                  "--logger", "tensorboard", "--logger", "json"],
                                 env=env(), stdout=out, stderr=err, text=True, start_new_session=True)
         seen: dict[tuple[str, int], str] = {}  # (address, port) -> name of the process listening on it
+        ray_workers: dict[int, set[str]] = {}  # pid -> the names a Ray worker process of the sweep went by
         token_file = Path.home() / ".ray" / "auth_token"
         had_token_file = token_file.exists()
         deadline = time.monotonic() + 420
         try:
             while proc.poll() is None and time.monotonic() < deadline:
-                for pid, address, port in sockets.listening(sockets.process_tree(proc.pid)):
+                tree = sockets.process_tree(proc.pid)
+                for pid, address, port in sockets.listening(tree):
                     seen.setdefault((address, port), _process_name(pid))
+                for pid in tree:
+                    if (name := _process_name(pid)).startswith(RAY_WORKER_NAMES):
+                        ray_workers.setdefault(pid, set()).add(name)
                 time.sleep(0.2)
             proc.wait(timeout=max(1, deadline - time.monotonic()))
         finally:
             kill_group(proc)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, (logs / "out").read_text(), (logs / "err").read_text())
-    return results, done, SimpleNamespace(listening=seen, wrote_token_file=token_file.exists() and not had_token_file)
+    return results, done, SimpleNamespace(listening=seen, ray_workers=ray_workers,
+                                          wrote_token_file=token_file.exists() and not had_token_file)
+
+
+# A Ray worker process is "ray::IDLE" until it runs an actor, then the actor's class (/proc/PID/comm: 15 bytes)
+RAY_WORKER_NAMES = ("ray::IDLE", "ray::ImplicitFu", "ray::Hub")
 
 
 def _process_name(pid: int) -> str:
@@ -99,6 +109,9 @@ def test_sweep_listens_on_loopback_only(smoke):
     assert [f"{name} on {address}:{port}" for (address, port), name in seen.listening.items()
             if not sockets.is_loopback(address)] == []
     assert not seen.wrote_token_file, "the sweep wrote a Ray token file into the home directory"
+    # Ray starts no worker that no cell can use (ray_host.SYSTEM_CONFIG): one process per Tune worker (actors
+    # reused across cells) and the tracker hub's.
+    assert len(seen.ray_workers) == 2 + 1, seen.ray_workers
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker

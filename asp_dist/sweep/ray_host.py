@@ -27,6 +27,11 @@ from asp_dist.sweep import ledger
 from asp_dist.sweep import reaper as reaper_program
 
 OBJECT_STORE_BYTES = 100 * 1024**2  # cells exchange no large objects; Ray's minimum is ~75 MB
+# No idle workers started with the first driver (one per CPU): Tune gives every trainable actor a runtime env
+# (its env_vars, ray.tune.execution.class_cache), so a pool worker started without one never runs a cell. With
+# 2 workers the tracker hub's actor took one and the other idled all sweep long (≈ 0.9 CPU-s of imports, and
+# its memory); on a 64-CPU node 63 would. The hub's actor now starts its worker on demand.
+SYSTEM_CONFIG = {"prestart_worker_first_driver": False}
 RAY_SESSIONS_KEPT = 3  # session_* dirs of the embedded Ray kept at start (logs of the last runs)
 RAY_SESSION_MIN_AGE_S = 300.0  # a younger session may belong to a Ray that is starting: never pruned
 
@@ -126,7 +131,7 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                 with _signals_held(sigterm):
                     context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir, _node_ip_address=LOOPBACK,
                                        include_dashboard=dashboard, dashboard_host=LOOPBACK,
-                                       object_store_memory=OBJECT_STORE_BYTES, **common)
+                                       object_store_memory=OBJECT_STORE_BYTES, _system_config=SYSTEM_CONFIG, **common)
                 if dashboard and context.dashboard_url:
                     (stream or sys.stderr).write(f"Ray dashboard: http://{context.dashboard_url}\n")
         except ConnectionError as e:
