@@ -73,6 +73,17 @@ MUTATIONS = (
     Mutation("Tune's S3 sync skips a file that changed (the bucket keeps a stale experiment state)",
              "asp_dist/sweep/tune_storage.py", "            if self._written.get(path) == digest:",
              "            if path in self._written:", ("tests/test_tune_storage.py",)),
+    Mutation("the optimizer shortcut stays after torch._dynamo loads (a plugin's torch.compile would trace the "
+             "optimizer)", "asp_dist/training/torch_runtime.py",
+             '        if "torch._dynamo" not in sys.modules:\n            return fn(*args, **kwargs)',
+             "        if True:\n            return fn(*args, **kwargs)", ("tests/test_torch_runtime.py",)),
+    Mutation("a training process imports torch._dynamo again (optimizer steps not covered)",
+             "asp_dist/training/torch_runtime.py", "    for cls, step in grad_mode_steps():",
+             "    for cls, step in ():", ("tests/test_torch_runtime.py",)),
+    Mutation("the embedded Ray prestarts idle workers that no cell can use", "asp_dist/sweep/ray_host.py",
+             'SYSTEM_CONFIG = {"prestart_worker_first_driver": False}',
+             'SYSTEM_CONFIG = {"prestart_worker_first_driver": True}',
+             ("tests/test_sweep.py::test_sweep_listens_on_loopback_only",)),
 )
 
 
