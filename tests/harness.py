@@ -65,6 +65,14 @@ def start_cli(*args: str, log_dir: Path, base_env: dict[str, str] | None = None,
 
 
 # ---- the processes of a driver's Ray ----------------------------------------------------------------------
+def process_name(pid: int) -> str:
+    """A process's name (/proc/PID/comm, 15 bytes: "ray::ImplicitFu"), "?" once it is gone."""
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return "?"
+
+
 def session_processes(sid: int, ray_temp: str) -> dict[int, str]:
     """Processes started by the driver (its session: start_new_session) or naming this test's Ray temp dir."""
     found = {}

@@ -36,6 +36,7 @@ from harness import (
     kill_group,
     newest_state,
     parquet_files,
+    process_name,
     ray_workers_running,
     read_log,
     session_processes,
@@ -53,6 +54,10 @@ from asp_dist.sweep.spaces import expand, space_file
 from asp_dist.training.row import schema as row_schema
 
 pytestmark = pytest.mark.slow
+
+
+# A Ray worker process is "ray::IDLE" until it runs an actor, then the actor's class (/proc/PID/comm: 15 bytes)
+RAY_WORKER_NAMES = ("ray::IDLE", "ray::ImplicitFu", "ray::Hub")
 
 
 @pytest.fixture(scope="module")
@@ -75,9 +80,9 @@ def smoke(tmp_path_factory):
             while proc.poll() is None and time.monotonic() < deadline:
                 tree = sockets.process_tree(proc.pid)
                 for pid, address, port in sockets.listening(tree):
-                    seen.setdefault((address, port), _process_name(pid))
+                    seen.setdefault((address, port), process_name(pid))
                 for pid in tree:
-                    if (name := _process_name(pid)).startswith(RAY_WORKER_NAMES):
+                    if (name := process_name(pid)).startswith(RAY_WORKER_NAMES):
                         ray_workers.setdefault(pid, Counter())[name] += 1
                 time.sleep(0.2)
             proc.wait(timeout=max(1, deadline - time.monotonic()))
@@ -86,17 +91,6 @@ def smoke(tmp_path_factory):
     done = subprocess.CompletedProcess(proc.args, proc.returncode, (logs / "out").read_text(), (logs / "err").read_text())
     return results, done, SimpleNamespace(listening=seen, ray_workers=ray_workers,
                                           wrote_token_file=token_file.exists() and not had_token_file)
-
-
-# A Ray worker process is "ray::IDLE" until it runs an actor, then the actor's class (/proc/PID/comm: 15 bytes)
-RAY_WORKER_NAMES = ("ray::IDLE", "ray::ImplicitFu", "ray::Hub")
-
-
-def _process_name(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/comm").read_text().strip()
-    except OSError:
-        return "?"
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker

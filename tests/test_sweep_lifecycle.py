@@ -23,7 +23,17 @@ import time
 from pathlib import Path
 
 import pytest
-from harness import env, fingerprint, free_port, kill_all, parquet_files, session_processes, wait_for, wait_until_gone
+from harness import (
+    env,
+    fingerprint,
+    free_port,
+    kill_all,
+    parquet_files,
+    process_name,
+    session_processes,
+    wait_for,
+    wait_until_gone,
+)
 
 from asp_dist import cli
 from asp_dist.data.mnist import MNISTError
@@ -352,13 +362,6 @@ def start_smoke(tmp_path, ray_temp, *extra, command=("sweep", "smoke"), results=
     return driver
 
 
-def _comm(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/comm").read_text().strip()
-    except OSError:
-        return ""
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("moment", ["ray-starting", "workers-starting"])
 def test_sigterm_during_start_up_stops_the_sweep(tmp_path, moment):
@@ -371,7 +374,7 @@ def test_sigterm_during_start_up_stops_the_sweep(tmp_path, moment):
     try:
         deadline = time.monotonic() + 120
         while driver.poll() is None and time.monotonic() < deadline and not any(
-                _comm(pid).startswith(want) for pid in session_processes(driver.pid, ray_temp)):
+                process_name(pid).startswith(want) for pid in session_processes(driver.pid, ray_temp)):
             time.sleep(0.05)
         assert driver.poll() is None, "the sweep ended before it could be stopped"
         driver.send_signal(signal.SIGTERM)
