@@ -16,6 +16,7 @@ from torch import nn
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
+from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
 
 class BaseRejected(RuntimeError):
@@ -43,8 +44,6 @@ def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> B
     Attempt k trains base_train_steps · base_steps_growth^k updates, so that a retry is not
     just another draw of a budget that was too small."""
     import time
-
-    from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
     keep_dynamo_unloaded()
     spec = spec.resolved()
