@@ -84,6 +84,20 @@ MUTATIONS = (
              'SYSTEM_CONFIG = {"prestart_worker_first_driver": False}',
              'SYSTEM_CONFIG = {"prestart_worker_first_driver": True}',
              ("tests/test_sweep.py::test_sweep_listens_on_loopback_only",)),
+    Mutation("trainables keep Tune's runtime env on the embedded Ray (a setup_worker.py process per worker)",
+             "asp_dist/sweep/tune.py", "nullcontext() if address else worker_start.trainables_without_runtime_env()",
+             "nullcontext()", ("tests/test_sweep.py::test_ray_workers_start_lean",)),
+    Mutation("the embedded Ray starts the autoscaler monitor and the log monitor again", "asp_dist/sweep/ray_host.py",
+             '        kwargs.setdefault("include_log_monitor", False)\n        kwargs.setdefault("no_monitor", True)\n',
+             "", ("tests/test_sweep.py::test_ray_workers_start_lean",)),
+    Mutation("trainable workers lose Tune's variables (not set before the embedded Ray starts)",
+             "asp_dist/sweep/worker_start.py",
+             ("        os.environ[key] = wanted[key]", "    _INHERITED.update({k: os.environ[k] for k in wanted})"),
+             ("        pass", "    _INHERITED.update(wanted)"),
+             ("tests/test_sweep.py::test_ray_workers_start_lean",)),
+    Mutation("a trainable imports IPython to clear a shell it does not have", "asp_dist/sweep/worker_start.py",
+             '        if "IPython" in sys.modules:\n            original()', "        original()",
+             ("tests/test_worker_start.py",)),
 )
 
 

@@ -73,6 +73,24 @@ def process_name(pid: int) -> str:
         return "?"
 
 
+def python_program(pid: int) -> str | None:
+    """The script a Python process runs (the basename of its first `*.py` argument: "setup_worker.py"), if any."""
+    try:
+        args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return None
+    return next((Path(a.decode(errors="replace")).name for a in args[1:4] if a.endswith(b".py")), None)
+
+
+def process_environ(pid: int) -> dict[str, str]:
+    """A process's environment as it started (/proc/PID/environ), {} once it is gone."""
+    try:
+        raw = Path(f"/proc/{pid}/environ").read_bytes()
+    except OSError:
+        return {}
+    return dict(item.decode(errors="replace").split("=", 1) for item in raw.split(b"\0") if b"=" in item)
+
+
 def session_processes(sid: int, ray_temp: str) -> dict[int, str]:
     """Processes started by the driver (its session: start_new_session) or naming this test's Ray temp dir."""
     found = {}

@@ -36,7 +36,9 @@ from harness import (
     kill_group,
     newest_state,
     parquet_files,
+    process_environ,
     process_name,
+    python_program,
     ray_workers_running,
     read_log,
     session_processes,
@@ -58,21 +60,27 @@ pytestmark = pytest.mark.slow
 
 # A Ray worker process is "ray::IDLE" until it runs an actor, then the actor's class (/proc/PID/comm: 15 bytes)
 RAY_WORKER_NAMES = ("ray::IDLE", "ray::ImplicitFu", "ray::Hub")
+SMOKE_DRIVER_TOKEN = "asp-dist-smoke-driver"  # in the smoke driver's environment; Tune hands it to trainables
 
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
     """`asp-dist sweep smoke --logger tensorboard --logger json` (18 tiny signaling cells), run once for the tests
-    that read it. While it runs, the listening TCP sockets of its whole process tree and the names of its Ray
-    worker processes are sampled (test_sweep_listens_on_loopback_only)."""
+    that read it. While it runs, the listening TCP sockets of its whole process tree, the names of its Ray
+    worker processes (test_sweep_listens_on_loopback_only), the Python programs of the tree and the trainable
+    workers' environments (test_ray_workers_start_lean) are sampled. The driver has a variable that Tune hands
+    its trainables (AWS_SECURITY_TOKEN, unused on local disk)."""
     results = tmp_path_factory.mktemp("smoke-results")
     logs = tmp_path_factory.mktemp("smoke-logs")
     with open(logs / "out", "w+") as out, open(logs / "err", "w+") as err:  # files: a full pipe cannot stall it
         proc = subprocess.Popen([sys.executable, "-m", "asp_dist.cli", "sweep", "smoke", "--results", str(results),
                                  "--logger", "tensorboard", "--logger", "json"],
-                                env=env(), stdout=out, stderr=err, text=True, start_new_session=True)
+                                env=env(AWS_SECURITY_TOKEN=SMOKE_DRIVER_TOKEN), stdout=out, stderr=err, text=True,
+                                start_new_session=True)
         seen: dict[tuple[str, int], str] = {}  # (address, port) -> name of the process listening on it
         ray_workers: dict[int, Counter] = {}  # pid -> how many samples saw the sweep's Ray worker under each name
+        programs: dict[int, set[str]] = {}  # pid -> the Python scripts it was seen running (exec keeps the pid)
+        trainable_env: dict[int, dict[str, str]] = {}  # a trainable worker's pid -> its environment
         token_file = Path.home() / ".ray" / "auth_token"
         had_token_file = token_file.exists()
         deadline = time.monotonic() + 420
@@ -84,12 +92,17 @@ def smoke(tmp_path_factory):
                 for pid in tree:
                     if (name := process_name(pid)).startswith(RAY_WORKER_NAMES):
                         ray_workers.setdefault(pid, Counter())[name] += 1
+                    if program := python_program(pid):
+                        programs.setdefault(pid, set()).add(program)
+                    if name == "ray::ImplicitFu" and pid not in trainable_env:
+                        trainable_env[pid] = process_environ(pid)
                 time.sleep(0.2)
             proc.wait(timeout=max(1, deadline - time.monotonic()))
         finally:
             kill_group(proc)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, (logs / "out").read_text(), (logs / "err").read_text())
-    return results, done, SimpleNamespace(listening=seen, ray_workers=ray_workers,
+    return results, done, SimpleNamespace(listening=seen, ray_workers=ray_workers, programs=programs,
+                                          trainable_env=trainable_env,
                                           wrote_token_file=token_file.exists() and not had_token_file)
 
 
@@ -110,6 +123,22 @@ def test_sweep_listens_on_loopback_only(smoke):
     idle_all_along = {pid: names for pid, names in seen.ray_workers.items()
                       if set(names) == {"ray::IDLE"} and names["ray::IDLE"] >= 5}
     assert not idle_all_along and any(names["ray::Hub"] for names in seen.ray_workers.values()), seen.ray_workers
+
+
+@pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker
+def test_ray_workers_start_lean(smoke):
+    """The embedded Ray starts no process a sweep does not use (asp_dist/sweep/worker_start.py, ray_host): no
+    trainable worker goes through Ray's setup_worker.py (Tune's runtime env, set by inheritance instead), and
+    neither the autoscaler monitor nor the log monitor runs. What the runtime env gave the trainables they still
+    have: Tune's PL_DISABLE_FORK=1 and the driver's AWS_SECURITY_TOKEN."""
+    _, proc, seen = smoke
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ran = set().union(*seen.programs.values())
+    assert "default_worker.py" in ran, seen.programs  # the sampling sees Ray's Python processes
+    assert not ran & {"setup_worker.py", "monitor.py", "log_monitor.py"}, seen.programs
+    assert seen.trainable_env and all(
+        (e.get("PL_DISABLE_FORK"), e.get("AWS_SECURITY_TOKEN")) == ("1", SMOKE_DRIVER_TOKEN)
+        for e in seen.trainable_env.values()), {pid: sorted(e) for pid, e in seen.trainable_env.items()}
 
 
 @pytest.mark.xdist_group("smoke")  # shares a module fixture: one worker

@@ -5,6 +5,7 @@ answer, and SIGINT/SIGTERM that reach a driver stuck inside Ray's client). sweep
 from __future__ import annotations
 
 import getpass
+import inspect
 import logging
 import os
 import secrets
@@ -25,6 +26,7 @@ from ray.exceptions import AuthenticationError
 from asp_dist.errors import SweepError
 from asp_dist.sweep import ledger
 from asp_dist.sweep import reaper as reaper_program
+from asp_dist.sweep import worker_start
 
 OBJECT_STORE_BYTES = 100 * 1024**2  # cells exchange no large objects; Ray's minimum is ~75 MB
 # No idle workers started with the first driver (one per CPU): Tune gives every trainable actor a runtime env
@@ -128,7 +130,8 @@ def ray_session(workers: int, address: str | None, temp_dir: str | None, *, dash
                 prune_reaper_logs(temp_dir)
                 reaper = _start_reaper(temp_dir)
                 stack.enter_context(loopback_only())
-                with _signals_held(sigterm):
+                stack.enter_context(worker_start.inherited_tune_env())  # workers get Tune's variables by birth
+                with _signals_held(sigterm), _head_without_unused_daemons(unless=dashboard):
                     context = ray.init(address="local", num_cpus=workers, _temp_dir=temp_dir, _node_ip_address=LOOPBACK,
                                        include_dashboard=dashboard, dashboard_host=LOOPBACK,
                                        object_store_memory=OBJECT_STORE_BYTES, _system_config=SYSTEM_CONFIG, **common)
@@ -179,6 +182,33 @@ def _signals_held(sigterm) -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
     if held:
         sigterm(held[0], None)  # raises KeyboardInterrupt: the sweep stops, ray_session shuts Ray down
+
+
+@contextmanager
+def _head_without_unused_daemons(unless: bool) -> Iterator[None]:
+    """While the embedded Ray starts (without a dashboard): no autoscaler monitor and no log monitor, two
+    Python daemons of ≈ 1 CPU-s each that a sweep never uses -- the embedded Ray has a fixed size (nothing to
+    autoscale, no `ray status` reaches it: loopback and a random token), and the log monitor only streams
+    worker output to drivers, which log_to_driver=False turns off. ray.init passes neither switch, so they
+    are defaults of the RayParams it builds here. With --dashboard both stay (its cluster view reads the
+    monitor). If a Ray release renames them, both start as before."""
+    from ray._private import parameter
+
+    init = parameter.RayParams.__init__
+    if unless or not {"include_log_monitor", "no_monitor"} <= set(inspect.signature(init).parameters):
+        yield
+        return
+
+    def lean_init(self, *args, **kwargs):
+        kwargs.setdefault("include_log_monitor", False)
+        kwargs.setdefault("no_monitor", True)
+        init(self, *args, **kwargs)
+
+    parameter.RayParams.__init__ = lean_init
+    try:
+        yield
+    finally:
+        parameter.RayParams.__init__ = init
 
 
 def _token_hint() -> str:

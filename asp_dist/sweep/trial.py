@@ -38,10 +38,14 @@ from asp_dist.results.location import AnyPath, S3Path, as_path
 from asp_dist.spec import FIELD_NAMES, CellSpec
 from asp_dist.sweep.packing import Unit
 from asp_dist.sweep.tune_storage import TUNE_DIR
+from asp_dist.sweep import worker_start
 from asp_dist.tracking.hub import Feed, final_metrics, hub_name
 
 # torch and the training pipeline are imported by the functions a worker runs, not here: the driver imports
 # this module only to hand train_cell to Tune and to name trials, and would pay ~2 s of CPU per sweep for them.
+
+# A worker imports this module when it unpickles train_cell, before Tune's trainable starts (no IPython import).
+worker_start.skip_ipython_import()
 
 CKPT_TMP = ".ckpt-tmp"  # under TUNE_DIR: checkpoints being written, before Tune copies them into its trial dir
 DISK_FULL = "disk_full"  # a trial's result key: where a write found no space left

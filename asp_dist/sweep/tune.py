@@ -59,7 +59,7 @@ from ray.tune.logger import CSVLoggerCallback, JsonLoggerCallback
 from asp_dist.errors import DiskFull, StorageError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path, write_replace
-from asp_dist.sweep import ledger, preflight, provenance, signals
+from asp_dist.sweep import ledger, preflight, provenance, signals, worker_start
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
 from asp_dist.sweep.plan import Plan, RunOptions
@@ -505,7 +505,8 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                     _DISK_FULL.clear()
                     with nullcontext() if address else session():
                         _record_provenance(sweep_dir, plan, stream, ray_nodes=ray.nodes(), tracking=options.tracking)
-                        with _trackers(plan, options.tracking, stream), _no_callback_tag_without_usage_stats():
+                        with _trackers(plan, options.tracking, stream), _no_callback_tag_without_usage_stats(), \
+                                nullcontext() if address else worker_start.trainables_without_runtime_env():
                             _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
