@@ -56,9 +56,10 @@ def distributions() -> list[str]:
     """Every installed distribution as name==version, sorted by name (case-insensitive)."""
     seen = {}
     for dist in metadata.distributions():
-        name = dist.metadata.get("Name")
+        meta = dist.metadata  # parsed at each access (dist.version too): once, as it is ≈ 1 ms a distribution
+        name = meta.get("Name")
         if name:
-            seen.setdefault(name.lower(), f"{name}=={dist.version}")
+            seen.setdefault(name.lower(), f"{name}=={meta.get('Version')}")
     return [seen[k] for k in sorted(seen)]
 
 
