@@ -24,15 +24,15 @@ import ray
 from ray.exceptions import AuthenticationError
 
 from asp_dist.errors import SweepError
-from asp_dist.sweep import ledger
+from asp_dist.sweep import ledger, worker_start
 from asp_dist.sweep import reaper as reaper_program
-from asp_dist.sweep import worker_start
 
 OBJECT_STORE_BYTES = 100 * 1024**2  # cells exchange no large objects; Ray's minimum is ~75 MB
-# No idle workers started with the first driver (one per CPU): Tune gives every trainable actor a runtime env
-# (its env_vars, ray.tune.execution.class_cache), so a pool worker started without one never runs a cell. With
-# 2 workers the tracker hub's actor took one and the other idled all sweep long (≈ 0.9 CPU-s of imports, and
-# its memory); on a 64-CPU node 63 would. The hub's actor now starts its worker on demand.
+# No pool workers started with the first driver (one per CPU). While Tune gave every trainable a runtime env they
+# could never run a cell: with 2 workers the tracker hub's actor took one and the other idled all sweep long
+# (≈ 0.9 CPU-s of imports, and its memory; on a 64-CPU node 63 would). The embedded Ray's trainables now start
+# without one (worker_start), so a prestarted worker could take a cell, but that only moves a start earlier, and
+# a sweep with fewer cells pending than CPUs would still idle the rest: every worker starts on demand.
 SYSTEM_CONFIG = {"prestart_worker_first_driver": False}
 RAY_SESSIONS_KEPT = 3  # session_* dirs of the embedded Ray kept at start (logs of the last runs)
 RAY_SESSION_MIN_AGE_S = 300.0  # a younger session may belong to a Ray that is starting: never pruned

@@ -36,9 +36,9 @@ from asp_dist.errors import SpecError, StorageError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, S3Path, as_path
 from asp_dist.spec import FIELD_NAMES, CellSpec
+from asp_dist.sweep import worker_start
 from asp_dist.sweep.packing import Unit
 from asp_dist.sweep.tune_storage import TUNE_DIR
-from asp_dist.sweep import worker_start
 from asp_dist.tracking.hub import Feed, final_metrics, hub_name
 
 # torch and the training pipeline are imported by the functions a worker runs, not here: the driver imports

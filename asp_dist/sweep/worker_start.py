@@ -17,7 +17,9 @@ before its first cell. Two more costs came with Tune and do nothing for a sweep;
   calls Tune's function only when IPython is already loaded, where it does what it always did.
 
 Both patch a Ray internal by name and do nothing if a Ray release renames it (the cost comes back, nothing
-breaks). tests/test_worker_start.py checks both on a real sweep.
+breaks). tests/test_worker_start.py checks each rule and its fallbacks; tests/test_sweep.py's
+test_ray_workers_start_lean checks a real sweep's processes and their environments. (The head's unused
+daemons: ray_host._head_without_unused_daemons.)
 """
 
 from __future__ import annotations
