@@ -149,6 +149,21 @@ def no_wandb_network(monkeypatch):
     monkeypatch.setenv("WANDB_SILENT", "true")
 
 
+def wandb_runs_ended(settings, cell) -> list[bool]:
+    """For each W&B run file of the cell, in start order: whether it ends with the run's exit record."""
+    from asp_dist.tracking.wandb import records, run_id_of
+
+    root = Path(settings.dir) / "wandb"
+    ended = []
+    for f in sorted(root.glob(f"*-{run_id_of(cell)}/run-{run_id_of(cell)}.wandb")):
+        try:
+            kinds = [r.WhichOneof("record_type") for r in records(f)]
+        except (OSError, ValueError):  # not written far enough yet to read
+            kinds = []
+        ended.append(bool(kinds) and kinds[-1] == "exit")
+    return ended
+
+
 @pytest.mark.parametrize("kind", sorted(TRACKERS))
 def test_a_resumed_cell_continues_its_run_with_each_step_once(kind, tmp_path, no_wandb_network):
     settings = TrackingSettings((kind,)).resolved(tmp_path)
@@ -171,8 +186,10 @@ def test_a_resumed_cell_continues_its_run_with_each_step_once(kind, tmp_path, no
     second.finish(cell.cell_id, {"eval_mixed": 0.75, "eval_convention_match": 0.5}, 100)
     assert second.close(interrupted=False) == []
 
+    if kind == "wandb":  # W&B's service may still be writing the run file after finish() returns: wait for its end
+        wait_for(lambda: wandb_runs_ended(settings, cell) == [True, True], 30, what="both W&B run files ended")
     got = read_back(kind, settings, cell)
-    assert got["steps"]["loss/paired"] == steps, "every step once, in order, across the two runs"
+    assert got["steps"]["loss/paired"] == steps, ("every step once, in order, across the two runs", got)
     assert got["steps"]["probe/mixed"] == steps[4::5]
     assert got["final"] == {"eval/mixed": 0.75, "eval/convention_match": 0.5}
     if kind == "tensorboard":
