@@ -149,6 +149,44 @@ def no_wandb_network(monkeypatch):
     monkeypatch.setenv("WANDB_SILENT", "true")
 
 
+def test_a_w_and_b_run_file_cut_short_reads_as_its_whole_records(tmp_path, no_wandb_network):
+    """A killed process leaves its W&B run file with a torn last record; a resumed cell reads the file to find its
+    last step. Cut at every 97th byte, the file reads as the full file's records up to the cut (its steps a
+    prefix of the full run's), and the tracker resumes after the last whole step, instead of failing and being
+    switched off. A record that does not parse before the end is still an error."""
+    pytest.importorskip("wandb")
+    from asp_dist.tracking.wandb import WandbTracker, history_steps, records, run_id_of
+
+    settings = TrackingSettings(("wandb",)).resolved(tmp_path)
+    (cell,) = cells_of(SPEC).values()
+    hub = Hub(settings, "s", {cell.cell_id: cell})
+    hub.points([(cell.cell_id, points(range(2, 61, 2)))])
+    assert hub.close(interrupted=True) == []
+    wait_for(lambda: wandb_runs_ended(settings, cell) == [True], 30, what="the W&B run file ended")
+    (path,) = (Path(settings.dir) / "wandb").glob(f"*-{run_id_of(cell)}/run-{run_id_of(cell)}.wandb")
+    data, full = path.read_bytes(), [r.SerializeToString() for r in records(path)]
+    full_steps = history_steps(path)
+    assert full_steps == list(range(2, 61, 2))
+    cut = tmp_path / "cut.wandb"
+    for size in range(8, len(data), 97):
+        cut.write_bytes(data[:size])
+        got = [r.SerializeToString() for r in records(cut)]
+        assert got == full[:len(got)], size
+        assert history_steps(cut) == full_steps[:len(history_steps(cut))], size
+    cut.write_bytes(data[:len(data) // 2])
+    path.write_bytes(data[:len(data) // 2])  # the run file as a killed process left it
+    tracker = WandbTracker(settings, "s")
+    try:
+        assert tracker.open_cell(cell) == history_steps(cut)[-1] < 60
+    finally:
+        tracker.close(interrupted=True)
+    damaged = bytearray(data)
+    damaged[14] = 0  # the first record's first byte (after 7 of file and 7 of record header): field number 0
+    cut.write_bytes(bytes(damaged))
+    with pytest.raises(ValueError):
+        list(records(cut))
+
+
 def wandb_runs_ended(settings, cell) -> list[bool]:
     """For each W&B run file of the cell, in start order: whether it ends with the run's exit record."""
     from asp_dist.tracking.wandb import records, run_id_of

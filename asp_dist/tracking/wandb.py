@@ -84,7 +84,10 @@ _HEADER = 7  # W&B's file header: ":W&B", a 2-byte magic, a version byte
 
 
 def records(path: Path) -> Iterator[Any]:
-    """The protobuf Records (wandb.proto.wandb_internal_pb2.Record) of a run's .wandb file."""
+    """The protobuf Records (wandb.proto.wandb_internal_pb2.Record) of a run's .wandb file. A record cut short at
+    the end (the file of a killed process, the case of a resumed cell) ends the file, as in a LevelDB log reader:
+    the records before it are whole. A record that does not parse elsewhere is a ValueError."""
+    from google.protobuf.message import DecodeError
     from wandb.proto import wandb_internal_pb2
 
     data = path.read_bytes()
@@ -100,11 +103,16 @@ def records(path: Path) -> Iterator[Any]:
         if kind == 0 and length == 0:
             pos += left  # zeroed rest of a block
             continue
+        if pos + 7 + length > len(data):  # the torn tail of a killed writer
+            return
         parts.append(data[pos + 7:pos + 7 + length])
         pos += 7 + length
         if kind in (1, 4):  # FULL or LAST: a record is whole
             record = wandb_internal_pb2.Record()
-            record.ParseFromString(b"".join(parts))
+            try:
+                record.ParseFromString(b"".join(parts))
+            except DecodeError as e:
+                raise ValueError(f"{path}: a W&B record at byte {pos} does not parse ({e})") from None
             parts = []
             yield record
 
