@@ -86,8 +86,8 @@ _HEADER = 7  # W&B's file header: ":W&B", a 2-byte magic, a version byte
 def records(path: Path) -> Iterator[Any]:
     """The protobuf Records (wandb.proto.wandb_internal_pb2.Record) of a run's .wandb file. A record cut short at
     the end (the file of a killed process, the case of a resumed cell) ends the file, as in a LevelDB log reader:
-    the records before it are whole. A record that does not parse elsewhere is a ValueError."""
-    from google.protobuf.message import DecodeError
+    the records before it are whole. A record that does not parse elsewhere raises protobuf's DecodeError (on a
+    resume the hub then switches the tracker off with a warning, rather than resend the curve into the run)."""
     from wandb.proto import wandb_internal_pb2
 
     data = path.read_bytes()
@@ -109,10 +109,7 @@ def records(path: Path) -> Iterator[Any]:
         pos += 7 + length
         if kind in (1, 4):  # FULL or LAST: a record is whole
             record = wandb_internal_pb2.Record()
-            try:
-                record.ParseFromString(b"".join(parts))
-            except DecodeError as e:
-                raise ValueError(f"{path}: a W&B record at byte {pos} does not parse ({e})") from None
+            record.ParseFromString(b"".join(parts))
             parts = []
             yield record
 
