@@ -44,8 +44,7 @@ class WandbTracker(Tracker):
         import wandb
 
         run_id = run_id_of(cell)
-        last = max((s for f in sorted(self.root.glob(f"*-{run_id}/run-{run_id}.wandb"))
-                    for s in history_steps(f)), default=None)
+        last = max((s for f in run_files(self.root, cell) for s in history_steps(f)), default=None)
         config = {k: hparam(v) for k, v in cell.config.items()} | {"sweep": cell.sweep, "cell_id": cell.cell_id,
                                                                    "code_revision": cell.revision}
         self.runs[cell.cell_id] = wandb.init(
@@ -76,6 +75,13 @@ class WandbTracker(Tracker):
 def run_id_of(cell: CellInfo) -> str:
     """The cell's W&B run id: the same on every run of the sweep, another in another sweep of the project."""
     return f"{cell.domain[:16]}-{stable_hash(f'{cell.sweep}/{cell.cell_id}')[:16]}"
+
+
+def run_files(root: Path, cell: CellInfo) -> list[Path]:
+    """The cell's W&B run files under ``root`` (DIR/wandb), oldest first: one per run of the sweep that logged
+    it (W&B names a run's directory by its start second and id)."""
+    run_id = run_id_of(cell)
+    return sorted(root.glob(f"*-{run_id}/run-{run_id}.wandb"))
 
 
 # ---- W&B's run files, read back ---------------------------------------------------------------
