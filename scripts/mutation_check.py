@@ -101,6 +101,9 @@ MUTATIONS = (
     Mutation("a killed driver's torn W&B record stops a resumed cell's W&B run", "asp_dist/tracking/wandb.py",
              "        if pos + 7 + length > len(data):  # the torn tail of a killed writer",
              "        if False:", ("tests/test_tracking.py -k cut_short",)),
+    Mutation("a trainable called outside Ray starts a local Ray to look for a tracker hub", "asp_dist/sweep/trial.py",
+             "        if not ray.is_initialized():", "        if False:",
+             ("tests/test_pack_sweep.py -k test_pack_trainable_writes_run_packs",)),
 )
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import ray
 from budgets import TINY, tiny_spec
 from harness import (checkpointed_running_trials, clean, cli, env, expected_rows, kill_group, newest_state, s3_env,
                      start_moto, stop_now)
@@ -288,6 +289,7 @@ def test_pack_trainable_writes_run_packs_rows_resumes_from_its_checkpoint_and_wr
     config = {"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e-9)}  # a checkpoint after every update
 
     sweep_tune.train_cell(config)
+    assert not ray.is_initialized(), "train_cell outside Ray started a local Ray to look for a tracker hub"
     files = cell_files(sweep_dir)
     assert sorted(files) == sorted(unit.cell_ids) and not store.failed_cells(sweep_dir)
     rows = store.read_rows(sweep_dir).set_index("cell_id")

@@ -194,6 +194,8 @@ def _feed(sweep: str, cells: set[str]) -> Feed | None:
     a row are done in their trackers too); None when the sweep runs without trackers. (A worker lives in one
     Ray session, and a session runs one sweep run: its hub, or none, for every trial the worker takes.)"""
     if sweep not in _HUBS:
+        if not ray.is_initialized():  # train_cell called outside Ray: no hub, and get_actor would start a Ray
+            return None
         try:
             _HUBS[sweep] = ray.get_actor(hub_name(sweep))
         except ValueError:
