@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from asp_dist.analysis.calibration import needed_trials, power, select, settings
+from asp_dist.analysis.rank_tests import friedman, mean_ranks
 from asp_dist.results.store import read_rows
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "results" / "examples"
@@ -71,6 +72,21 @@ def test_power_grows_with_the_effect():
     assert rates[10] >= rates[5] and rates[10] > 0.95 and needed_trials(rates) in (5, 10)
     weak = by_knobs(settings(synthetic(asp_gain_non_sat=8.0), "particles"), particles_replay_size=100)
     assert needed_trials(power(weak.blocks, sizes=(10, 20), resamples=200)) is None
+
+
+def test_power_tests_its_resamples_at_once_as_the_one_by_one_loop_did():
+    blocks = select(settings(synthetic(asp_gain_non_sat=0.2), "particles")).blocks.round(0)  # ties
+    rng, per_trial = np.random.default_rng(3), [blocks.xs(t, level="trial").to_numpy()
+                                                for t in sorted(blocks.index.get_level_values("trial").unique())]
+    expected = {}
+    for n in (3, 6):
+        hits = 0
+        for _ in range(300):
+            scores = np.concatenate([per_trial[i] for i in rng.integers(len(per_trial), size=n)])
+            ranks = mean_ranks(scores)
+            hits += bool(friedman(scores)[1] < 0.05 and ranks[2] < ranks[:2].min())
+        expected[n] = hits / 300
+    assert power(blocks, sizes=(3, 6), resamples=300, seed=3) == expected and 0 < expected[6] < 1
 
 
 @pytest.mark.parametrize("domain, winner, changed", [

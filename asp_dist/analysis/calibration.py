@@ -21,7 +21,7 @@ import pandas as pd
 
 from asp_dist.analysis.layout import NOT_KNOBS
 from asp_dist.analysis.paper import paper_paired_ranges
-from asp_dist.analysis.rank_tests import friedman, mean_ranks
+from asp_dist.analysis.rank_tests import friedman_each, mean_ranks, mean_ranks_each
 from asp_dist.domains import DOMAINS, get_domain
 from asp_dist.spec import CellSpec
 
@@ -105,19 +105,20 @@ def select(candidates: list[Setting]) -> Setting:
 
 def power(blocks: pd.DataFrame, sizes=POWER_SIZES, alpha: float = 0.05, resamples: int = 5000,
           seed: int = 0) -> dict[int, float]:
-    """Rejection rate of the Friedman test with ASP best, resampling whole trials to n."""
+    """Rejection rate of the Friedman test with ASP best, resampling whole trials to n (all resamples of one n
+    tested at once: asp_dist.analysis.power.resampled)."""
+    from asp_dist.analysis.power import resampled
+
     rng = np.random.default_rng(seed)
     trials = sorted(blocks.index.get_level_values("trial").unique())
     per_trial = [blocks.xs(t, level="trial").to_numpy() for t in trials]
     out = {}
     for n in sizes:
+        picks = [rng.integers(len(per_trial), size=n) for _ in range(resamples)]
         hits = 0
-        for _ in range(resamples):
-            pick = rng.integers(len(per_trial), size=n)
-            scores = np.concatenate([per_trial[i] for i in pick])
-            _, p = friedman(scores)
-            ranks = mean_ranks(scores)
-            hits += bool(p < alpha and ranks[2] < ranks[:2].min())
+        for _, scores in resampled(per_trial, picks):
+            ranks = mean_ranks_each(scores)
+            hits += int(((friedman_each(scores) < alpha) & (ranks[:, 2] < ranks[:, :2].min(axis=1))).sum())
         out[n] = hits / resamples
     return out
 

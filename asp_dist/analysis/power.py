@@ -26,7 +26,8 @@ import numpy as np
 import pandas as pd
 
 from asp_dist.analysis.layout import domain_layout, label_rows, treatment_order
-from asp_dist.analysis.rank_tests import friedman, holm, mean_ranks, wilcoxon
+from asp_dist.analysis.rank_tests import (friedman, friedman_each, holm, holm_each, mean_ranks, mean_ranks_each,
+                                            wilcoxon, wilcoxon_each)
 from asp_dist.analysis.tables import block_matrix
 from asp_dist.errors import SpecError
 
@@ -134,6 +135,45 @@ def rejects(scores: np.ndarray, ia: int, ib: int, test: str, alpha: float) -> bo
     return bool(p < alpha and np.median(scores[:, ia] - scores[:, ib]) > 0)
 
 
+def rejects_each(scores: np.ndarray, ia: int, ib: int, test: str, alpha: float) -> np.ndarray:
+    """`rejects` of each samples x blocks x treatments sample at once (equal to it sample by sample:
+    tests/test_power.py)."""
+    _, n, k = scores.shape
+    found = np.ones(len(scores), dtype=bool)
+    if k >= 3:
+        found &= friedman_each(scores) < alpha
+    if test == "friedman-nemenyi":
+        if k < 3:
+            raise SpecError("friedman-nemenyi needs three or more treatments; use --test wilcoxon-holm")
+        from scipy.stats import studentized_range
+
+        ranks = mean_ranks_each(scores)
+        found &= ranks[:, ia] < ranks[:, ib]
+        q = abs(ranks[:, ia] - ranks[:, ib]) / np.sqrt(k * (k + 1) / (6.0 * n)) * np.sqrt(2.0)  # nemenyi_pair's
+        candidates = np.flatnonzero(found)  # Nemenyi's p (an integral each) only where it decides
+        found[candidates] = studentized_range.sf(q[candidates], k, np.inf) < alpha
+        return found
+    found &= np.median(scores[:, :, ia] - scores[:, :, ib], axis=1) > 0
+    left = scores[found]  # Wilcoxon only where it decides (a small sample's is a permutation test)
+    pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
+    ps = holm_each(np.stack([wilcoxon_each(left[:, :, i] - left[:, :, j]) for i, j in pairs], axis=1))
+    found[found] = ps[:, pairs.index((min(ia, ib), max(ia, ib)))] < alpha
+    return found
+
+
+def resampled(per_trial: Sequence[np.ndarray], picks: Sequence[np.ndarray], most: int = 1 << 22):
+    """(indices into `picks`, their samples x blocks x treatments scores) for every pick of trials, in stacks
+    of at most `most` numbers; each stack holds picks of one block count (trials may differ in blocks)."""
+    size = np.array([len(per_trial[i]) for i in range(len(per_trial))])
+    blocks = np.array([size[p].sum() for p in picks])
+    for count in np.unique(blocks):
+        same = np.flatnonzero(blocks == count)
+        step = max(1, most // max(1, count * per_trial[0].shape[1]))
+        for start in range(0, len(same), step):
+            chunk = same[start:start + step]
+            yield chunk, np.stack([np.concatenate([per_trial[i] for i in picks[j]]) for j in chunk])
+
+
 def estimate(comp: Comparison, test: str = "friedman-nemenyi", alpha: float = 0.05, target: float = 0.8,
              sizes: Sequence[int] = SIZES, resamples: int = 1000, seed: int = 0) -> PowerEstimate:
     """Power of `test` at every trial count in `sizes` (and at the sweep's own count), resampling trials."""
@@ -148,10 +188,8 @@ def estimate(comp: Comparison, test: str = "friedman-nemenyi", alpha: float = 0.
                         observed_rejects=rejects(np.concatenate(per_trial), ia, ib, test, alpha))
     rng = np.random.default_rng(seed)
     for n in sorted(set(sizes) | {len(per_trial)}):
-        hits = 0
-        for _ in range(resamples):
-            pick = rng.integers(len(per_trial), size=n)
-            hits += rejects(np.concatenate([per_trial[i] for i in pick]), ia, ib, test, alpha)
+        picks = [rng.integers(len(per_trial), size=n) for _ in range(resamples)]  # one draw per resample, as ever
+        hits = sum(int(rejects_each(scores, ia, ib, test, alpha).sum()) for _, scores in resampled(per_trial, picks))
         out.rates[n] = hits / resamples
     return out
 
