@@ -376,17 +376,23 @@ def test_an_endpoint_that_accepts_but_never_answers_is_given_up_on(s3, tmp_path)
     server.bind(("127.0.0.1", 0))
     server.listen(64)
     endpoint = f"http://127.0.0.1:{server.getsockname()[1]}"
+    running = []
     try:
         for command, extra in ((["status", "smoke"], {"ASP_DIST_S3_TIMEOUT": "2"}),
                                (["query", "smoke", "--sql", "SELECT 1"], {"ASP_DIST_S3_TIMEOUT": "2"}),
-                               (["sweep", "smoke", "--connect-timeout", "2"], {})):
-            proc = subprocess.run([sys.executable, "-m", "asp_dist.cli", *command, "--results", f"s3://{BUCKET}/x"],
-                                  env=dict(s3.env, AWS_ENDPOINT_URL=endpoint, **extra), capture_output=True, text=True,
-                                  timeout=120, cwd=tmp_path)
-            assert proc.returncode == 2, (command, proc.stderr[-2000:])
-            assert proc.stderr.startswith(f"asp-dist: error: no answer from the S3 endpoint {endpoint}"), proc.stderr
-            assert "within 2 s" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+                               (["sweep", "smoke", "--connect-timeout", "2"], {})):  # the three wait at once
+            running.append((command, subprocess.Popen(
+                [sys.executable, "-m", "asp_dist.cli", *command, "--results", f"s3://{BUCKET}/x"],
+                env=dict(s3.env, AWS_ENDPOINT_URL=endpoint, **extra), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                text=True, cwd=tmp_path)))
+        for command, proc in running:
+            _, stderr = proc.communicate(timeout=120)
+            assert proc.returncode == 2, (command, stderr[-2000:])
+            assert stderr.startswith(f"asp-dist: error: no answer from the S3 endpoint {endpoint}"), stderr
+            assert "within 2 s" in stderr and len(stderr.strip().splitlines()) == 1, stderr
     finally:
+        for _, proc in running:
+            proc.kill()
         server.close()
     assert not list(tmp_path.iterdir())
 
