@@ -116,7 +116,7 @@ def power(blocks: pd.DataFrame, sizes=POWER_SIZES, alpha: float = 0.05, resample
     for n in sizes:
         picks = [rng.integers(len(per_trial), size=n) for _ in range(resamples)]
         hits = 0
-        for _, scores in resampled(per_trial, picks):
+        for scores in resampled(per_trial, picks):
             ranks = mean_ranks_each(scores)
             hits += int(((friedman_each(scores) < alpha) & (ranks[:, 2] < ranks[:, :2].min(axis=1))).sum())
         out[n] = hits / resamples

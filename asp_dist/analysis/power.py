@@ -162,16 +162,15 @@ def rejects_each(scores: np.ndarray, ia: int, ib: int, test: str, alpha: float) 
 
 
 def resampled(per_trial: Sequence[np.ndarray], picks: Sequence[np.ndarray], most: int = 1 << 22):
-    """(indices into `picks`, their samples x blocks x treatments scores) for every pick of trials, in stacks
-    of at most `most` numbers; each stack holds picks of one block count (trials may differ in blocks)."""
+    """The samples x blocks x treatments scores of every pick of trials, in stacks of at most `most` numbers;
+    each stack holds picks of one block count (trials may differ in blocks)."""
     size = np.array([len(per_trial[i]) for i in range(len(per_trial))])
     blocks = np.array([size[p].sum() for p in picks])
     for count in np.unique(blocks):
         same = np.flatnonzero(blocks == count)
         step = max(1, most // max(1, count * per_trial[0].shape[1]))
         for start in range(0, len(same), step):
-            chunk = same[start:start + step]
-            yield chunk, np.stack([np.concatenate([per_trial[i] for i in picks[j]]) for j in chunk])
+            yield np.stack([np.concatenate([per_trial[i] for i in picks[j]]) for j in same[start:start + step]])
 
 
 def estimate(comp: Comparison, test: str = "friedman-nemenyi", alpha: float = 0.05, target: float = 0.8,
@@ -189,7 +188,7 @@ def estimate(comp: Comparison, test: str = "friedman-nemenyi", alpha: float = 0.
     rng = np.random.default_rng(seed)
     for n in sorted(set(sizes) | {len(per_trial)}):
         picks = [rng.integers(len(per_trial), size=n) for _ in range(resamples)]  # one draw per resample, as ever
-        hits = sum(int(rejects_each(scores, ia, ib, test, alpha).sum()) for _, scores in resampled(per_trial, picks))
+        hits = sum(int(rejects_each(scores, ia, ib, test, alpha).sum()) for scores in resampled(per_trial, picks))
         out.rates[n] = hits / resamples
     return out
 

@@ -103,7 +103,7 @@ def spearman(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 # ---- the same tests on many samples at once (resampling: asp_dist.analysis.power, .calibration) -------------
 # Each takes a stack of equally long samples (first axis: the sample) and gives what the one-sample function
 # above gives for every sample, through scipy's own vectorized statistics: equal bit for bit
-# (tests/test_power.py), about a hundred times faster than a Python loop over thousands of resamples.
+# (tests/test_power.py), 50-80 times faster than a Python loop over thousands of resamples.
 
 def friedman_each(scores: np.ndarray) -> np.ndarray:
     """`friedman`'s p of each samples x blocks x treatments sample (1 where all its scores tie)."""
