@@ -21,6 +21,7 @@ import pandas as pd
 
 from asp_dist.analysis.layout import NOT_KNOBS
 from asp_dist.analysis.paper import paper_paired_ranges
+from asp_dist.analysis.power import resampled
 from asp_dist.analysis.rank_tests import friedman_each, mean_ranks, mean_ranks_each
 from asp_dist.domains import DOMAINS, get_domain
 from asp_dist.spec import CellSpec
@@ -107,8 +108,6 @@ def power(blocks: pd.DataFrame, sizes=POWER_SIZES, alpha: float = 0.05, resample
           seed: int = 0) -> dict[int, float]:
     """Rejection rate of the Friedman test with ASP best, resampling whole trials to n (all resamples of one n
     tested at once: asp_dist.analysis.power.resampled)."""
-    from asp_dist.analysis.power import resampled
-
     rng = np.random.default_rng(seed)
     trials = sorted(blocks.index.get_level_values("trial").unique())
     per_trial = [blocks.xs(t, level="trial").to_numpy() for t in trials]

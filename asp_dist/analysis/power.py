@@ -164,7 +164,7 @@ def rejects_each(scores: np.ndarray, ia: int, ib: int, test: str, alpha: float) 
 def resampled(per_trial: Sequence[np.ndarray], picks: Sequence[np.ndarray], most: int = 1 << 22):
     """The samples x blocks x treatments scores of every pick of trials, in stacks of at most `most` numbers;
     each stack holds picks of one block count (trials may differ in blocks)."""
-    size = np.array([len(per_trial[i]) for i in range(len(per_trial))])
+    size = np.array([len(t) for t in per_trial])
     blocks = np.array([size[p].sum() for p in picks])
     for count in np.unique(blocks):
         same = np.flatnonzero(blocks == count)

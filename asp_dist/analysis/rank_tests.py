@@ -130,9 +130,10 @@ def wilcoxon_each(diffs: np.ndarray) -> np.ndarray:
     d = np.asarray(diffs, dtype=float)
     n = d.shape[1]
     p = np.ones(len(d))
-    zero = np.all(d == 0, axis=1)
-    magnitudes = np.sort(np.where(d == 0, np.nan, np.abs(d)), axis=1)
-    plain = ~np.any(d == 0, axis=1) & ~np.any(magnitudes[:, 1:] == magnitudes[:, :-1], axis=1)
+    is_zero = d == 0
+    zero = np.all(is_zero, axis=1)
+    magnitudes = np.sort(np.abs(d), axis=1)
+    plain = ~np.any(is_zero, axis=1) & ~np.any(magnitudes[:, 1:] == magnitudes[:, :-1], axis=1)  # no zeros, no ties
     groups = [(~zero, False)] if n > 50 else [(plain, False), (~plain & ~zero, n <= 13)]
     for rows, one_by_one in groups:
         if not rows.any():
