@@ -69,3 +69,54 @@ class Knob:
         if not isinstance(self.doc, str) or not self.doc.strip():
             out.append(f"knob {self.name!r} needs a one-line doc")
         return out
+
+
+# ---- what a fast trainer implements ------------------------------------------------------------------
+# A trainer that re-derives a domain's update (a packed trainer) declares, for every knob of its domain,
+# which values it implements: `implements = {knob name: ANY | BASE_ONLY | (value, ...)}`. The trainer
+# registry (asp_dist.training.engines) refuses a trainer whose declaration misses a knob, so a knob added
+# to a domain's game but not to its fast trainer cannot be silently ignored; a cell whose value a trainer
+# does not implement trains on the next trainer that does (the reference one implements every value).
+
+
+class _Marker:
+    def __init__(self, name: str):
+        self.name = name
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+ANY: Any = _Marker("ANY")  # every value the knob accepts
+BASE_ONLY: Any = _Marker("BASE_ONLY")  # a knob of the base's training only: the new agents' update never reads it
+
+
+def implements_problems(implements: Any, domain_knobs: tuple[Knob, ...] | list[Knob], fields: set[str]) -> list[str]:
+    """What is wrong with a trainer's `implements` declaration: a knob of its domain it does not cover, a
+    name that is no field (`fields`: every field of a cell), an entry that is neither a marker nor a
+    non-empty tuple of values, or a choice the knob does not have."""
+    if not isinstance(implements, dict):
+        return [f"`implements` is a {type(implements).__name__}, not a dict of knob name -> values"]
+    out = []
+    missing = [k.name for k in domain_knobs if k.name not in implements]
+    if missing:
+        out.append(f"it does not say which values it implements of {', '.join(missing)}")
+    for name, allowed in implements.items():
+        if name not in fields:
+            out.append(f"it declares {name!r}, which is no knob")
+        elif allowed is not ANY and allowed is not BASE_ONLY and not (isinstance(allowed, tuple) and allowed):
+            out.append(f"{name!r} must map to ANY, BASE_ONLY or a non-empty tuple of values, not {allowed!r}")
+    by_name = {k.name: k for k in domain_knobs}
+    for name, allowed in implements.items():
+        knob = by_name.get(name)
+        if knob is not None and knob.choices and isinstance(allowed, tuple):
+            odd = [v for v in allowed if v not in knob.choices]
+            if odd:
+                out.append(f"{name!r}: {odd} are not among its choices {knob.choices}")
+    return out
+
+
+def unimplemented(implements: dict[str, Any], spec: Any) -> list[str]:
+    """`knob=value` for each value of (resolved) `spec` that `implements` does not cover."""
+    return [f"{name}={getattr(spec, name)!r}" for name, allowed in implements.items()
+            if isinstance(allowed, tuple) and getattr(spec, name) not in allowed]

@@ -20,6 +20,7 @@ from budgets import TINY
 from asp_dist.domains import DOMAINS as REGISTRY
 from asp_dist.domains import get_domain
 from asp_dist.domains.levers import AGENTS
+from asp_dist.knobs import BASE_ONLY
 from asp_dist.spec import CellSpec
 from asp_dist.training.engines import lone_trainer
 from asp_dist.training.methods import method_weights
@@ -210,6 +211,12 @@ class PackCase:
     def spec(self, **changes) -> CellSpec:
         return CellSpec(**{"domain": self.domain, **self.small, **changes}).resolved()
 
+    @property
+    def all_packs(self) -> dict[str, list[dict]]:
+        """The packs checked member by member: the case's own, then those generated from its trainer's
+        `implements` (knob_packs)."""
+        return {**self.packs, **knob_packs(self)}
+
     def member_data(self, s: CellSpec) -> tuple[dict, dict]:
         """P and U of a member from a fixed (untrained) base; copies of one draw per (base fields,
         paired count, U's size) -- what they depend on, as run_pack's data cache has it (sampling a
@@ -358,6 +365,46 @@ VAE = PackCase(
 )
 
 CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE)}
+
+
+def other_value(value: Any) -> Any:
+    """A value of a knob's type other than `value`, near it: half a float, the other bool, half an int
+    (or one more, for 0 to 2)."""
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int):
+        return value + 1 if value <= 2 else value // 2
+    return value / 2
+
+
+def knob_packs(case: PackCase) -> dict[str, list[dict]]:
+    """Packs generated from what the domain's packed trainer says it implements (its `implements`) and the
+    knobs' metadata, so that a knob the trainer declares is checked against the reference without a line
+    here: "knobs", one ASP member per per-member knob and value (each value a tuple lists, each choice
+    of a text knob, another value of any other; defaults included once, as the first member), and
+    "<knob>" for each knob the pack shares (a pack key field), two members at another value. BASE_ONLY
+    knobs shape the base alone: nothing of the trainer's to check."""
+    trainer, small = trainer_class(case.domain), case.spec()
+    knobs = {k.name: k for k in get_domain(case.domain).knobs}
+    members, shared = [dict(method="asp", paired=2, trial=0)], {}
+    for name, allowed in trainer.implements.items():
+        if allowed is BASE_ONLY:
+            continue
+        current = getattr(small, name)
+        if isinstance(allowed, tuple):
+            values = allowed
+        elif name in knobs and knobs[name].choices:
+            values = knobs[name].choices
+        else:
+            values = (other_value(current),)
+        values = [v for v in values if v != current]
+        if name in trainer.shared:
+            for v in values[:1]:
+                shared[f"knob-{name}"] = [dict(method="asp", paired=2, **{name: v}),
+                                          dict(method="osp", paired=1, trial=1, **{name: v})]
+        else:
+            members += [dict(method="asp", paired=2, trial=len(members) % 3, **{name: v}) for v in values]
+    return {"knobs": members, **shared}
 
 
 def case_for(domain: str) -> PackCase:

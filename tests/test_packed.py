@@ -7,17 +7,21 @@ tests/test_packed_<domain>.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
+import logging
 
 import pytest
 import torch
 from budgets import TINY, tiny_spec
 from checkpoints import checkpoint_sink
 from packed_cases import (DOMAINS, AdamDrift, adam_sqrt_v, case_for, disc_grad_tol, disc_params, flat_grads,
-                          flat_params, float32_tol, lone, packed_module, stacked_sqrt_v, trainer_class)
+                          flat_params, float32_tol, lone, other_value, packed_module, stacked_sqrt_v, trainer_class)
 
 from asp_dist.domains import get_domain
+from asp_dist.knobs import ANY, Knob
+from asp_dist.training import engines
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.engines import lone_trainer, pack_key, run_pack, supports
@@ -34,10 +38,10 @@ def assert_states_equal(got: list[torch.Tensor], expected: list[torch.Tensor], w
 
 
 # ---- a pack's update against the reference, member by member ----------------------------------------
-@pytest.mark.parametrize("domain,name", [(d, n) for d in DOMAINS for n in case_for(d).packs])
+@pytest.mark.parametrize("domain,name", [(d, n) for d in DOMAINS for n in case_for(d).all_packs])
 def test_packed_update_equals_the_reference_member_by_member(domain, name):
     case = case_for(domain)
-    specs = [case.spec(**c) for c in case.packs[name]]
+    specs = [case.spec(**c) for c in case.all_packs[name]]
     data = [case.member_data(s) for s in specs]
     pack, singles = case.make_pack(specs, data), [case.make_reference(s, d) for s, d in zip(specs, data)]
     terms = [case.grad_terms(s, single.agents) for s, single in zip(specs, singles)]
@@ -339,13 +343,52 @@ def test_restore_mid_pack_continues_bit_for_bit(domain, monkeypatch):
 def test_a_domain_packs_its_own_cells_only(domain):
     module, trainer = packed_module(domain), trainer_class(domain)
     s = tiny_spec(domain)
-    assert supports(s) and module.supports(s) and trainer.supports(s)
+    assert supports(s) and trainer.supports(s)
     assert pack_key(s) == (domain, *module.pack_key(s)) == (domain, *trainer.pack_key(s))
     assert pack_key(s) == pack_key(tiny_spec(domain, method="asp", paired=3, trial=4, lr=0.1))
     for other in DOMAINS + ["signaling"]:
         if other != domain:
-            assert not module.supports(tiny_spec(other))
+            assert not trainer.supports(tiny_spec(other))
     assert not supports(tiny_spec("signaling"))
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_a_knob_the_packed_trainer_does_not_declare_makes_it_refuse_every_cell(domain, monkeypatch, caplog):
+    """A knob added to the domain (its game reads it) but not to its packed trainer's `implements`: the
+    trainer registry refuses the trainer with one warning naming the knob, and every cell of the domain
+    trains on the next trainer (the reference for packs; the domain's next lone trainer or the reference
+    for lone cells), so the kernel cannot silently ignore the knob."""
+    trainer, card = trainer_class(domain), get_domain(domain)
+    s = tiny_spec(domain, method="asp", paired=2).resolved()
+    assert engines.trainer_problems(trainer, domain) == [] and trainer in engines.trainers_of(domain)
+    new = Knob(f"{domain}_new_idea", float, 0.5, "a knob only the game knows")
+    monkeypatch.setattr(type(card), "knobs", (*card.knobs, new))
+    with caplog.at_level(logging.WARNING, logger=engines.__name__):
+        assert trainer not in engines.trainers_of(domain)
+        assert trainer not in engines.trainers_of(domain)
+    refused = [r.getMessage() for r in caplog.records if trainer.__name__ in r.getMessage()]
+    assert len(refused) == 1 and f"{domain}_new_idea" in refused[0], refused
+    assert engines.pack_trainer(s) is None and not engines.supports(s)
+    assert engines.lone_trainer(s) is not trainer
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_a_cell_a_lone_trainer_cannot_honour_falls_back_with_one_log_line(domain, monkeypatch, caplog):
+    """A knob value outside what the lone trainer implements: the cell trains on the next trainer that
+    supports it, and one log line names the trainer passed over and the knob value."""
+    trainer = engines.lone_trainer(tiny_spec(domain, method="asp", paired=2))
+    if getattr(trainer, "implements", None) is None:
+        pytest.skip(f"{domain}'s lone trainer runs the domain's own game functions")
+    name = next(n for n, allowed in trainer.implements.items() if allowed is ANY and n not in trainer.shared)
+    s = tiny_spec(domain, method="asp", paired=2).resolved()
+    monkeypatch.setitem(trainer.implements, name, (getattr(s, name),))
+    odd = dataclasses.replace(s, **{name: other_value(getattr(s, name))}).resolved()
+    assert trainer.supports(s) and not trainer.supports(odd)
+    with caplog.at_level(logging.INFO, logger=engines.__name__):
+        chosen = engines.lone_trainer(odd)
+    assert chosen is not trainer and chosen.supports(odd)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and trainer.__name__ in lines[0] and f"{name}=" in lines[0] and odd.cell_id in lines[0]
 
 
 # What run_cell trains a lone cell on, per built-in domain (a plugin's packed trainer: the rule only).

@@ -14,7 +14,9 @@ from packed_cases import LEVERS, AdamDrift, adam_sqrt_v, flat_grads, flat_params
 
 import asp_dist.domains.levers.packed as packed_mod
 from asp_dist.domains import get_domain
-from asp_dist.domains.levers.packed import PackedLeverTrainer, pack_key, supports
+from asp_dist.domains.levers.packed import PackedLeverTrainer, pack_key
+
+supports = PackedLeverTrainer.supports
 
 
 def test_what_can_share_a_pack():

@@ -16,7 +16,7 @@ from packed_cases import (VAE, AdamDrift, adam_sqrt_v, disc_grad_tol, disc_param
 
 from asp_dist.domains import get_domain
 from asp_dist.domains.vae.fast import OnePassVAETrainer
-from asp_dist.domains.vae.packed import IMPLEMENTED, PackedVAETrainer, pack_key, supports
+from asp_dist.domains.vae.packed import IMPLEMENTS, PackedVAETrainer, pack_key
 from asp_dist.training.engines import lone_trainer, pack_trainer, sweep_packs
 from asp_dist.training.methods import method_weights
 
@@ -199,10 +199,10 @@ def test_a_pc_member_is_not_harmed_by_the_self_play_rows_it_rides_along_in():
 
 
 def test_what_can_share_a_pack():
-    spec = VAE.spec
+    spec, supports = VAE.spec, PackedVAETrainer.supports
     assert supports(tiny_spec("vae")) and supports(spec(method="asp", paired=2))
-    for knob, values in IMPLEMENTED.items():  # every value the spec accepts is implemented
-        for value in values:
+    for knob, values in IMPLEMENTS.items():  # every value the spec accepts is implemented
+        for value in values if isinstance(values, tuple) else ():
             assert supports(spec(method="asp", paired=2, **{knob: value})), (knob, value)
     assert not supports(tiny_spec("particles")) and not supports(tiny_spec("levers"))
     # per-member knobs do not split packs; shapes and the length of training do

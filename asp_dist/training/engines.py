@@ -10,6 +10,10 @@ so that choosing one is reading attributes, not branching on domains:
     in_sweeps   a ``--pack`` sweep puts the cells it supports in its packs; False for a packed trainer
                 measured slower than the lone path (it stays registered, tested and benchmarked)
     supports(spec) -> bool    it implements every knob value of `spec`
+    implements  (a trainer that re-derives the domain's update, such as a packed one) every knob of its
+                domain -> the values it implements (asp_dist.knobs: ANY, BASE_ONLY or a tuple of values);
+                None (the reference Trainer and its subclasses) where the update is the domain's own
+                game functions, which implement every value
     pack_key(spec) -> tuple   (packs only) cells with equal keys can share a pack: tensor shapes, length
     build(specs, paired, unpaired, agents)   the trainer of those members (one for a lone trainer), with
                 the interface the cell pipeline drives (asp_dist.training.pipeline.UnitTrainer)
@@ -19,13 +23,21 @@ A domain lists its own trainers, fastest first, in ``Domain.trainers`` (a built-
 every list: it trains any cell alone, and the fast trainers are tested against it. A cell trains on the first
 trainer that trains lone cells and supports it; a pack on the first that packs and supports every member.
 The sweep (asp_dist.sweep.packing, asp_dist.sweep.trial) and run_cell ask only this module.
+
+A trainer whose `implements` leaves out a knob of its domain (a knob added to the domain's game but not to
+the trainer) is refused when its domain's trainers are first read: one warning, and its cells train on the
+next trainer. A cell whose knob values a faster trainer does not implement trains on the next that does,
+with one log line saying why.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from typing import Callable, Sequence
 
 from asp_dist.domains import get_domain
+from asp_dist.knobs import implements_problems
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
 from asp_dist.training.pipeline import CellResult, one_domain, run_unit
@@ -34,15 +46,63 @@ from asp_dist.training.trainer import Trainer
 REFERENCE = Trainer
 
 
+log = logging.getLogger(__name__)
+_REFUSED: dict[tuple, list[str]] = {}  # (domain, its knobs, trainer) -> why refused; warned once per process
+
+
+def trainer_problems(trainer: type, domain: str) -> list[str]:
+    """Why `trainer` cannot be one of `domain`'s trainers: its `implements` does not cover every knob of the
+    domain (or names a field that does not exist); empty for a trainer without `implements` (the reference
+    and its subclasses, which run the domain's own game functions)."""
+    implements = getattr(trainer, "implements", None)
+    if implements is None:
+        return []
+    problems = implements_problems(implements, get_domain(domain).knobs, {f.name for f in dataclasses.fields(CellSpec)})
+    if getattr(trainer, "domain", domain) != domain:
+        problems.append(f"it trains {trainer.domain!r} cells, not {domain!r} ones")
+    return problems
+
+
 def trainers_of(domain: str) -> tuple[type, ...]:
-    """Every trainer of `domain`, in the order they are tried: the domain's own, then the reference."""
-    return (*get_domain(domain).trainers, REFERENCE)
+    """Every trainer of `domain`, in the order they are tried: the domain's own that pass trainer_problems
+    (a refused one is warned about once), then the reference."""
+    accepted, card = [], get_domain(domain)
+    knobs = tuple(k.name for k in card.knobs)
+    for trainer in card.trainers:
+        key = (domain, knobs, trainer)
+        if key not in _REFUSED:
+            _REFUSED[key] = trainer_problems(trainer, domain)
+            if _REFUSED[key]:
+                log.warning("%s: trainer %s refused (its cells train on the next trainer): %s", domain,
+                            trainer.__name__, "; ".join(_REFUSED[key]))
+        if not _REFUSED[key]:
+            accepted.append(trainer)
+    return (*accepted, REFERENCE)
+
+
+def unsupported(trainer: type, spec: CellSpec) -> list[str]:
+    """What of `spec` `trainer` does not implement (empty when it supports it)."""
+    if trainer.supports(spec):
+        return []
+    why = getattr(trainer, "unsupported", None)
+    return (why(spec) if why is not None else []) or ["this cell"]
 
 
 def lone_trainer(spec: CellSpec) -> type:
     """The trainer of `spec` as a single cell: the first of its domain's that trains lone cells and
-    supports it (the reference Trainer supports every cell)."""
-    return next(t for t in trainers_of(spec.domain) if t.lone and t.supports(spec))
+    supports it (the reference Trainer supports every cell). Where a faster lone trainer was passed over,
+    one log line says which knob values it does not implement."""
+    passed = []
+    for trainer in trainers_of(spec.domain):
+        if not trainer.lone:
+            continue
+        missing = unsupported(trainer, spec)
+        if not missing:
+            if passed:
+                log.info("%s trains on %s: %s", spec.cell_id, trainer.__name__, "; ".join(passed))
+            return trainer
+        passed.append(f"{trainer.__name__} does not implement {', '.join(missing)}")
+    raise AssertionError("the reference Trainer trains every cell")
 
 
 def pack_trainer(spec: CellSpec) -> type | None:
@@ -92,4 +152,4 @@ def run_pack(specs: Sequence[CellSpec], *, bases: dict | None = None, curves: bo
 
 
 __all__ = ["REFERENCE", "CellResult", "lone_trainer", "pack_key", "pack_trainer", "run_pack", "supports",
-           "sweep_packs", "trainers_of"]
+           "sweep_packs", "trainer_problems", "trainers_of", "unsupported"]

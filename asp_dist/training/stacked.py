@@ -8,7 +8,9 @@ records, per-member columns of scalars, and the allocator setting that packed up
                           the class the reference Trainer records with too), failures, and the
                           checkpoint of all that
     PackedTrainer         a domain's packed trainer's base class: PackRecords with the capabilities
-                          of asp_dist.training.engines (packs; `lone` and `in_sweeps` per domain)
+                          of asp_dist.training.engines (packs; `lone` and `in_sweeps` per domain; the
+                          knob values it implements), and the pieces every packed update repeats:
+                          the constructor's members, λ1 per update of a chunk, the freeze-then-Adam tail
     column                per-member Python scalars as a (M, 1[, 1]) tensor
     retain_freed_memory   glibc: keep freed memory in the heap instead of returning it at each free
 
@@ -25,7 +27,10 @@ from typing import Any
 
 import torch
 
+from asp_dist.domains import get_domain
+from asp_dist.knobs import unimplemented
 from asp_dist.spec import CellSpec
+from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import LossWeights, method_weights
 from asp_dist.training.records import COL, TERMS, Records, member_terms  # noqa: F401  (TERMS, member_terms: re-exported)
 
@@ -231,19 +236,41 @@ class PackRecords:
 
 
 class PackedTrainer(PackRecords):
-    """Base of a domain's packed trainer: its capabilities as asp_dist.training.engines reads them. A
-    subclass sets `supports` (a static method) and `shared` (its pack key's fields), and `lone = True` where a single cell is
-    faster as a one-member pack of it than on the domain's other trainers; `engine` is its class name."""
+    """Base of a domain's packed trainer: its capabilities as asp_dist.training.engines reads them, and the
+    parts of a packed update that do not depend on the domain.
+
+    A subclass sets
+        domain      the domain whose cells it trains
+        implements  every knob of that domain -> the values its update implements: ANY, a tuple of values,
+                    or BASE_ONLY (asp_dist.knobs); the registry refuses a trainer that leaves a knob out
+        shared      the spec fields every member shares (tensor shapes, the loop's length): its pack key
+        lone        True where a single cell is faster as a one-member pack than on the domain's other trainers
+    `engine` is its class name."""
 
     engine = "packed"  # each subclass: its own name (__init_subclass__)
     packs = True
     lone = False
     in_sweeps = True
-    shared: tuple[str, ...] = ()  # the spec fields every member shares (tensor shapes, the loop's length)
+    domain = ""
+    implements: dict[str, Any] = {}
+    shared: tuple[str, ...] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         cls.engine = cls.__name__
+
+    # ---- capabilities -----------------------------------------------------------------------------
+    @classmethod
+    def unsupported(cls, spec: CellSpec) -> list[str]:
+        """What of `spec` this trainer does not implement (`knob=value`, or the domain); empty: it trains it."""
+        spec = spec.resolved()
+        if spec.domain != cls.domain:
+            return [f"domain={spec.domain!r}"]
+        return unimplemented(cls.implements, spec)
+
+    @classmethod
+    def supports(cls, spec: CellSpec) -> bool:
+        return not cls.unsupported(spec)
 
     @classmethod
     def pack_key(cls, spec: CellSpec) -> tuple:
@@ -259,6 +286,88 @@ class PackedTrainer(PackRecords):
     def member_order(specs: Sequence[CellSpec]) -> list[int]:
         """The members' places in the pack (asp_dist.training.pipeline): the order given."""
         return list(range(len(specs)))
+
+    # ---- what every constructor does first --------------------------------------------------------
+    def _init_members(self, specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence,
+                      *, paired_rows: str) -> list[tuple[torch.nn.Module, ...]]:
+        """Check the members (checked_members), then set what every packed update reads of them, exactly as
+        Trainer.__init__ makes it per cell: `members` (spec, loss weights, the generator seeded as the
+        reference's, the agents, the discriminators of an ASP member built as Adversaries builds them,
+        the paired rows used: len(P[paired_rows]), 0 under a paired weight of 0), M, train_steps,
+        disc_steps, ub (unpaired batch), any_self_play, adv_rows / Ma / adv_idx / all_adv / adv_first
+        (the ASP members). Returns the ASP members' discriminators, one tuple per member in Adversaries'
+        channel order (sorted names)."""
+        specs = checked_members(specs, paired, unpaired, agents, trainer=type(self))
+        domain = get_domain(self.domain)
+        s0 = specs[0]
+        self.M, self.train_steps = len(specs), s0.train_steps
+        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
+        self.members: list[PackMember] = []
+        discs: list[tuple[torch.nn.Module, ...]] = []
+        for spec, p, a in zip(specs, paired, agents):
+            weights = method_weights(spec)
+            gen = torch.Generator().manual_seed(spec.seed_for("train"))
+            own: tuple[torch.nn.Module, ...] = ()
+            if weights.needs_adversary:
+                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
+                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
+                own = tuple(adv.discs.values())
+                discs.append(own)
+            n = len(p[paired_rows]) if weights.paired != 0.0 and p else 0
+            self.members.append(PackMember(spec=spec, weights=weights, agents=a, discs=own, gen=gen, n_paired=n,
+                                           terms=member_terms(weights, n)))
+        self.any_self_play = any(m.self_play for m in self.members)
+        self.adv_rows = [i for i, m in enumerate(self.members) if m.adversary]
+        self.Ma = len(self.adv_rows)
+        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
+        self.all_adv = self.Ma == self.M
+        self.adv_first = self.adv_rows == list(range(self.Ma))  # member_order may put the ASP members first
+        return discs
+
+    # ---- λ1 of the updates of a chunk ---------------------------------------------------------------
+    def _lambda_chunk(self, start: int, S: int) -> None:
+        """λ1 of updates [start, start + S) of each ASP member into lam_now[:S] (float64; allocated by the
+        subclass as (CHUNK, Ma)): w_unpaired · methods.lambda_factor, vectorised with the same float64
+        arithmetic (a Python float and a float64 element round alike)."""
+        steps = torch.arange(start, start + S, dtype=torch.float64)
+        for a, i in enumerate(self.adv_rows):
+            spec, w = self.members[i].spec, self.members[i].weights
+            if spec.lambda_unpaired_schedule == "constant":
+                factor = torch.ones(S, dtype=torch.float64)
+            else:
+                ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
+                factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
+            self.lam_now[:S, a] = w.unpaired * factor
+
+    # ---- the end of every update ----------------------------------------------------------------------
+    def _step_discriminators(self) -> None:
+        """The discriminators' Adam step; an ASP member any of whose discriminators' gradient is not finite
+        is frozen first (dnet's rows are channel-major: member a's c-th discriminator is row c·Ma + a)."""
+        dnet, Ma = self.dnet, self.Ma
+        dnet.zero_frozen_grads()
+        if not bool(torch.isfinite(dnet.grad.sum())):
+            per_member = len(dnet.member_ranges) // Ma
+            finite = [all(bool(torch.isfinite(dnet.member_flat(c * Ma + a, dnet.grad)).all()) for c in range(per_member))
+                      for a in range(Ma)]
+            self._freeze([i for a, i in enumerate(self.adv_rows) if self.active[i] and not finite[a]],
+                         "non-finite discriminator gradient")
+        dnet.step()
+
+    def _step_model(self, vals: dict | None, j: int, record: bool) -> None:
+        """The model's Adam step and the update's bookkeeping: a member whose gradient is not finite is
+        frozen first (one reduction over the buffer per update; frozen members' gradients are zeroed
+        first, so it sees new failures only), then one Adam step for every member, the update's
+        diagnostics recorded, the count advanced and a finished curve point closed."""
+        self.net.zero_frozen_grads()
+        if not bool(torch.isfinite(self.net.grad.sum())):
+            self._freeze([i for i in range(self.M) if self.active[i]
+                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
+                         "non-finite loss gradient")
+        self.net.step()
+        if record:
+            self._record(vals, j)
+        self.step += 1
+        self._finish_curve_point()
 
 
 def retain_freed_memory() -> None:
@@ -299,12 +408,13 @@ _MALLOC_DONE = False
 
 @dataclass(kw_only=True)
 class PackMember:
-    """One cell of a pack: its spec and what every packed trainer keeps per member (a domain's
-    trainer adds its networks)."""
+    """One cell of a pack: its spec, its networks and what every packed trainer keeps per member."""
 
     spec: CellSpec
     weights: LossWeights
     gen: torch.Generator
+    agents: torch.nn.Module  # its parameters are views of the pack's buffer: always current
+    discs: tuple[torch.nn.Module, ...]  # an ASP member's discriminators (Adversaries' order), likewise; else ()
     n_paired: int
     terms: tuple[str, ...]           # the diagnostics this member records (as its single-cell trainer)
     probe: Callable[[int], dict[str, float]] | None = None
@@ -326,17 +436,19 @@ class PackMember:
 
 
 def checked_members(specs: Sequence[CellSpec], paired: Sequence, unpaired: Sequence, agents: Sequence, *,
-                    supports: Callable[[CellSpec], bool], shared: Sequence[str], cannot: str) -> list[CellSpec]:
+                    trainer: type[PackedTrainer]) -> list[CellSpec]:
     """The members' resolved specs, after the checks every packed trainer's constructor makes: one
-    spec, P, U and agents per member (at least one), each spec supported (else ValueError: `cannot`
-    says which cells can), and all agreeing on the `shared` fields (tensor shapes, training length)."""
+    spec, P, U and agents per member (at least one), each spec supported by `trainer` (else ValueError
+    naming what it does not implement), and all agreeing on its `shared` fields (tensor shapes,
+    training length)."""
     specs = [s.resolved() for s in specs]
     if not specs or not len(specs) == len(paired) == len(unpaired) == len(agents):
         raise ValueError("a pack needs one spec, paired set, unpaired set and agents per member (at least one)")
     for s in specs:
-        if not supports(s):
-            raise ValueError(f"{s.cell_id} cannot be packed ({cannot})")
-        diff = [n for n in shared if getattr(s, n) != getattr(specs[0], n)]
+        missing = trainer.unsupported(s)
+        if missing:
+            raise ValueError(f"{s.cell_id} cannot be packed: {trainer.__name__} does not implement {', '.join(missing)}")
+        diff = [n for n in trainer.shared if getattr(s, n) != getattr(specs[0], n)]
         if diff:
             raise ValueError(f"{s.cell_id} and {specs[0].cell_id} differ in {', '.join(diff)}: not one pack")
     return specs

@@ -66,32 +66,19 @@ compute the union of the members' work (a PC member rides along in the self-play
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
 
-from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
 from asp_dist.domains.levers import AGENTS
 from asp_dist.domains.levers.game import CommNet, epsilon
+from asp_dist.knobs import ANY, BASE_ONLY
 from asp_dist.spec import CellSpec
-from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import method_weights
-from asp_dist.training.stacked import (
-    TERMS,
-    PackMember,
-    PackedTrainer,
-    StackedParams,
-    asp_members_first,
-    checked_members,
-    column,
-    member_terms,
-    retain_freed_memory,
-)
+from asp_dist.training.stacked import TERMS, PackedTrainer, StackedParams, asp_members_first, column, retain_freed_memory
 
-__all__ = ["PackedLeverTrainer", "pack_key", "supports", "SHARED", "TERMS"]
+__all__ = ["PackedLeverTrainer", "pack_key", "IMPLEMENTS", "SHARED", "TERMS"]
 
 _tanh_backward = torch.ops.aten.tanh_backward
 
@@ -107,6 +94,12 @@ SHARED = ("domain", "train_steps", "batch_size", "levers_hidden", "levers_num_id
           "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
 CHANNELS = ("f1", "f2")  # Adversaries' order (sorted channel names)
 CHUNK = 32  # updates whose random draws are made ahead
+# The knob values this update implements (asp_dist.knobs): every one.
+IMPLEMENTS = {
+    "levers_hidden": ANY, "levers_num_ids": ANY, "levers_eps_start": ANY, "levers_eps_end": ANY,
+    "levers_eps_decay_frac": ANY, "levers_replay_size": ANY,
+    "levers_base_lr": BASE_ONLY, "levers_accept_reward": BASE_ONLY,
+}
 
 
 def explore(coins: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
@@ -115,20 +108,6 @@ def explore(coins: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
     be in float32 too (in float64 a coin equal to float32(ε) < ε would explore where dqn_step does not)."""
     assert eps.dtype == torch.float32
     return coins < eps
-
-
-def supports(spec: CellSpec) -> bool:
-    """Whether `spec` can train in a pack: any lever cell (every lever knob is implemented)."""
-    return spec.resolved().domain == "levers"
-
-
-
-@dataclass(kw_only=True)
-class Member(PackMember):
-    """One cell of a pack, with its networks."""
-
-    agents: CommNet  # parameters are views of the pack's buffer: always current
-    discs: tuple[torch.nn.Module, ...]  # (f1, f2) discriminators of an ASP member, likewise; else ()
 
 
 class PackedLeverTrainer(PackedTrainer):
@@ -142,45 +121,20 @@ class PackedLeverTrainer(PackedTrainer):
 
     # Capabilities (asp_dist.training.engines): packs, and a single lever cell trains as a pack of one
     # (3.0x the reference Trainer: docs/performance.md).
+    domain = "levers"
     lone = True
-    supports = staticmethod(supports)
+    implements = IMPLEMENTS
     shared = SHARED  # the pack key (PackedTrainer.pack_key)
     member_order = staticmethod(asp_members_first)  # their rows of the pack are a prefix
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[CommNet]):
-        specs = checked_members(specs, paired, unpaired, agents, supports=supports, shared=SHARED,
-                                cannot="lever cells only")
+        discs = self._init_members(specs, paired, unpaired, agents, paired_rows="ids")  # (f1, f2) each
         retain_freed_memory()
-        domain = get_domain("levers")
-        s0 = specs[0]
-        self.M, self.B, self.H, self.V = len(specs), s0.batch_size, s0.levers_hidden, s0.levers_num_ids
-        self.size, self.train_steps = s0.levers_replay_size, s0.train_steps
-        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
-        M, B, H, V = self.M, self.B, self.H, self.V
-
-        # ---- members: weights, generators and discriminators exactly as Trainer.__init__ ------------
-        self.members: list[Member] = []
-        discs: list[tuple[torch.nn.Module, ...]] = []
-        for spec, p, a in zip(specs, paired, agents):
-            weights = method_weights(spec)
-            gen = torch.Generator().manual_seed(spec.seed_for("train"))
-            pair: tuple[torch.nn.Module, ...] = ()
-            if weights.needs_adversary:
-                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
-                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
-                pair = tuple(adv.discs[ch] for ch in CHANNELS)
-                discs.append(pair)
-            n = len(p["ids"]) if weights.paired != 0.0 else 0
-            self.members.append(Member(spec=spec, weights=weights, agents=a, discs=pair, gen=gen, n_paired=n,
-                                       terms=member_terms(weights, n)))
         mem = self.members
-        self.any_self_play = any(m.self_play for m in mem)
-        self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]
-        self.Ma = len(self.adv_rows)
-        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
-        self.all_adv = self.Ma == M
-        self.adv_first = self.adv_rows == list(range(self.Ma))  # the pipeline puts the ASP members first (member_order)
+        s0 = mem[0].spec
+        self.B, self.H, self.V, self.size = s0.batch_size, s0.levers_hidden, s0.levers_num_ids, s0.levers_replay_size
+        M, B, H, V = self.M, self.B, self.H, self.V
 
         # ---- stacked parameters: the CommNets; the (f1, f2) discriminators of the ASP members ---------
         self.net = StackedParams(agents, [m.spec.lr for m in mem])
@@ -318,17 +272,10 @@ class PackedLeverTrainer(PackedTrainer):
         self.rep_flat = (self.rep[:S] + self.r_offset.unsqueeze(0)).view(S, -1)
         if self.Ma:
             self.real_flat = self.real_idx[:S * ds] + self.u_offset.unsqueeze(0).unsqueeze(0)
-            steps = torch.arange(start, start + S, dtype=torch.float64)
+            self._lambda_chunk(start, S)
             for a, i in enumerate(self.adv_rows):
-                spec, w = self.members[i].spec, self.members[i].weights
-                if spec.lambda_unpaired_schedule == "constant":
-                    factor = torch.ones(S, dtype=torch.float64)
-                else:  # lambda_factor, vectorised (the same float64 arithmetic)
-                    ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
-                    factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
-                now = w.unpaired * factor
-                self.lam_now[:S, a] = now
-                self.lam_signed[:S, a] = now if spec.adversary_loss == "non_saturating" else -now
+                now = self.lam_now[:S, a]
+                self.lam_signed[:S, a] = now if self.members[i].spec.adversary_loss == "non_saturating" else -now
 
     # ---- one update of every member -------------------------------------------------------------
     @torch.no_grad()
@@ -456,17 +403,8 @@ class PackedLeverTrainer(PackedTrainer):
         torch.sum(dpre1, 1, out=self.g_b1)
         torch.bmm(dpre1, self.W1, out=self.g_E)
 
-        # ---- one Adam step for every member ----------------------------------------------------------
-        self.net.zero_frozen_grads()
-        if not bool(torch.isfinite(self.net.grad.sum())):
-            self._freeze([i for i in range(M) if self.active[i]
-                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
-                         "non-finite loss gradient")
-        self.net.step()
-        if record:
-            self._record(vals, j)
-        self.step += 1
-        self._finish_curve_point()
+        # ---- one Adam step for every member (a member whose gradient is not finite frozen first) ------
+        self._step_model(vals, j, record)
 
     def _adversarial(self, H1: torch.Tensor, h2: torch.Tensor, ids: torch.Tensor, G: int, j: int,
                      vals: dict | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -503,15 +441,7 @@ class PackedLeverTrainer(PackedTrainer):
                 vals["disc"] = disc_loss
                 if k == 0:
                     vals["disc_acc_real"], vals["disc_acc_fake"], vals["d_fake"] = acc_real, acc_fake, d_fake
-            # A member whose discriminators' gradient is not finite is frozen before their Adam step.
-            self.dnet.zero_frozen_grads()
-            if not bool(torch.isfinite(self.dnet.grad.sum())):
-                finite = [bool(torch.isfinite(self.dnet.member_flat(a, self.dnet.grad)).all())
-                          and bool(torch.isfinite(self.dnet.member_flat(Ma + a, self.dnet.grad)).all())
-                          for a in range(Ma)]
-                self._freeze([i for a, i in enumerate(self.adv_rows) if self.active[i] and not finite[a]],
-                             "non-finite discriminator gradient")
-            self.dnet.step()
+            self._step_discriminators()  # a member whose discriminators' gradient is not finite frozen first
         # The model's term: neg_bce -mean softplus(l) (d/dl = -σ/N), non-saturating mean softplus(-l)
         # (d/dl = (σ - 1)/N), times λ1 of this update.
         coef = (self.lam_signed[j] / nf).float().view(Ma, 1)

@@ -58,12 +58,11 @@ Packs: any mix of methods, paired counts, trials and per-member knobs, provided 
 agree on the fields in SHARED (tensor shapes, the length of training). Mixed packs compute
 the union of the members' work (a PC member rides along in the rollout with weight 0), so
 packs of one method are cheapest. Knob values this update does not implement (replay buffer,
-speaker-only paired loss) are not packable (`supports`); the reference Trainer runs those cells.
+speaker-only paired loss) are not packable (IMPLEMENTS); the reference Trainer runs those cells.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, NamedTuple, Sequence
 
 import torch
@@ -72,17 +71,9 @@ import torch.nn.functional as F
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
 from asp_dist.domains.particles.game import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
+from asp_dist.knobs import ANY, BASE_ONLY
 from asp_dist.spec import CellSpec
-from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import method_weights
-from asp_dist.training.stacked import (
-    PackMember,
-    PackedTrainer,
-    StackedParams,
-    checked_members,
-    column,
-    member_terms,
-)
+from asp_dist.training.stacked import PackedTrainer, StackedParams, column
 
 _tanh_backward = torch.ops.aten.tanh_backward
 _threshold_backward = torch.ops.aten.threshold_backward
@@ -92,23 +83,14 @@ _leaky_relu_backward = torch.ops.aten.leaky_relu_backward
 SHARED = ("domain", "train_steps", "batch_size", "particles_episode_len", "particles_rollout_len",
           "particles_message_dim", "particles_hidden", "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
 CHUNK = 128  # updates whose random draws are made ahead
-
-
-def supports(spec: CellSpec) -> bool:
-    """Whether `spec` can train in a pack (or as a pack of one): a particle cell of the on-policy
-    update with the listener term in the paired loss. The replay buffer and the speaker-only paired
-    loss run on the reference Trainer."""
-    spec = spec.resolved()
-    return spec.domain == "particles" and spec.particles_replay_size == 0 and spec.particles_paired_listener
-
-
-
-@dataclass(kw_only=True)
-class Member(PackMember):
-    """One cell of a pack, with its networks."""
-
-    agents: ParticleAgents  # parameters are views of the pack's buffer: always current
-    discs: tuple[torch.nn.Module, ...]  # (the discriminator,) of an ASP member, likewise; else ()
+# The knob values this update implements (asp_dist.knobs): the replay buffer and the speaker-only paired
+# loss are the reference Trainer's alone.
+IMPLEMENTS = {
+    "particles_message_dim": ANY, "particles_hidden": ANY, "particles_episode_len": ANY, "particles_gamma": ANY,
+    "particles_entropy": ANY, "particles_value_coef": ANY, "particles_rollout_len": ANY,
+    "particles_replay_size": (0,), "particles_paired_listener": (True,),
+    "particles_base_envs": BASE_ONLY, "particles_base_lr": BASE_ONLY, "particles_accept_return": BASE_ONLY,
+}
 
 
 class _Rollout(NamedTuple):
@@ -150,44 +132,22 @@ class PackedParticleTrainer(PackedTrainer):
 
     # Capabilities (asp_dist.training.engines): packs, and a single particle cell trains as a pack of one
     # (faster than the single-cell kernel it replaced: docs/decisions.md). Members in the order given.
+    domain = "particles"
     lone = True
-    supports = staticmethod(supports)
+    implements = IMPLEMENTS
     shared = SHARED  # the pack key (PackedTrainer.pack_key)
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[ParticleAgents]):
-        specs = checked_members(specs, paired, unpaired, agents, supports=supports, shared=SHARED,
-                                cannot="particle cells without replay or speaker-only paired loss only")
+        discs = [d for (d,) in self._init_members(specs, paired, unpaired, agents, paired_rows="state")]
         domain = get_domain("particles")
-        s0 = specs[0]
-        self.M, self.B, self.T = len(specs), s0.batch_size, s0.particles_episode_len
-        self.Kr, self.D, self.train_steps = s0.particles_rollout_len, s0.particles_message_dim, s0.train_steps
-        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
-        M, B, T, D = self.M, self.B, self.T, self.D
-
-        # ---- members: weights, generators and self-play state exactly as Trainer.__init__ -----------
-        self.members: list[Member] = []
-        discs: list[torch.nn.Module] = []
-        states: list[Tensors] = []
-        for spec, p, a in zip(specs, paired, agents):
-            weights = method_weights(spec)
-            gen = torch.Generator().manual_seed(spec.seed_for("train"))
-            disc = None
-            if weights.needs_adversary:
-                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
-                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
-                (disc,) = adv.discs.values()
-                discs.append(disc)
-            states.append(domain.init_self_play(spec, a, gen) if weights.needs_self_play else {})
-            n = len(p["state"]) if weights.paired != 0.0 else 0
-            self.members.append(Member(spec=spec, weights=weights, agents=a, discs=(disc,) if disc is not None else (), gen=gen, n_paired=n,
-                                       terms=member_terms(weights, n)))
         mem = self.members
-        self.any_self_play = any(m.self_play for m in mem)
-        self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]
-        self.Ma = len(self.adv_rows)
-        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
-        self.all_adv = self.Ma == M
+        s0 = mem[0].spec
+        self.B, self.T = s0.batch_size, s0.particles_episode_len
+        self.Kr, self.D = s0.particles_rollout_len, s0.particles_message_dim
+        M, B, T, D = self.M, self.B, self.T, self.D
+        # the self-play state of each member, drawn from its generator as Trainer.__init__ draws it
+        states = [domain.init_self_play(m.spec, m.agents, m.gen) if m.self_play else {} for m in mem]
 
         # ---- stacked parameters: speaker, listener, critic; discriminators of the ASP members --------
         self.net = StackedParams(agents, [m.spec.lr for m in mem])
@@ -310,18 +270,12 @@ class PackedParticleTrainer(PackedTrainer):
         if self.Ma:
             self.real_flat = (self.real_idx[:S * ds].view(S, ds, self.Ma, ub) + self.u_offset.unsqueeze(0)).view(
                 S * ds, self.Ma * ub)
-            steps = torch.arange(start, start + S, dtype=torch.float64)
+            self._lambda_chunk(start, S)
+            N = B * Kr
             for a, i in enumerate(self.adv_rows):
-                spec, w = self.members[i].spec, self.members[i].weights
-                if spec.lambda_unpaired_schedule == "constant":
-                    factor = torch.ones(S, dtype=torch.float64)
-                else:  # lambda_factor, vectorised (the same float64 arithmetic)
-                    ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
-                    factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
-                now = w.unpaired * factor
-                self.lam_now[:S, a] = now
-                N = B * Kr
-                self.lam_coef[:S, a, 0] = (now / N if spec.adversary_loss == "non_saturating" else -now / N).float()
+                now = self.lam_now[:S, a]
+                ns = self.members[i].spec.adversary_loss == "non_saturating"
+                self.lam_coef[:S, a, 0] = (now / N if ns else -now / N).float()
 
     # ---- forward pieces (member-stacked) --------------------------------------------------------
     def _speak(self, x):
@@ -377,7 +331,7 @@ class PackedParticleTrainer(PackedTrainer):
         if self.step >= self.chunk_end:
             self._draw_chunk()
         j = self.step - self.chunk_start
-        M, B, Kr, n = self.M, self.B, self.Kr, self.n
+        B, Kr, n = self.B, self.Kr, self.n
         record = self.recording()
         vals: dict[str, torch.Tensor] | None = {} if record else None
 
@@ -444,19 +398,8 @@ class PackedParticleTrainer(PackedTrainer):
             dhc = _threshold_backward(dv3 * self.cw2, hc, 0.0)
             _lin_back(dhc, ro.critic_in, self.cw1, self.g_cw1, self.g_cb1, need_input_grad=False)
 
-        # ---- 3. one Adam step for every member ----------------------------------------------------
-        # A member whose gradient is not finite is frozen before its Adam step (one reduction over
-        # the buffer per update; frozen members' gradients are zeroed first, so it sees new failures only).
-        self.net.zero_frozen_grads()
-        if not bool(torch.isfinite(self.net.grad.sum())):
-            self._freeze([i for i in range(M) if self.active[i]
-                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
-                         "non-finite loss gradient")
-        self.net.step()
-        if record:
-            self._record(vals, j)
-        self.step += 1
-        self._finish_curve_point()
+        # ---- 3. one Adam step for every member (a member whose gradient is not finite frozen first) ---
+        self._step_model(vals, j, record)
 
     def _adversarial(self, fake: torch.Tensor, j: int, vals: dict | None) -> torch.Tensor:
         """disc_steps BCE steps of each ASP member's discriminator, then λ1·d(L_u)/d(fake) through

@@ -55,35 +55,24 @@ and its discriminator's at their last finite values, and it is reported failed.
 Packs: any mix of methods, paired counts, trials and per-member knobs, provided the members agree
 on the fields in SHARED (tensor shapes, the length of training). Mixed packs compute the union of
 the members' work (a PC member rides along in the self-play rows with weight 0), so packs of one
-method are cheapest. Every VAE knob value is implemented (`supports`).
+method are cheapest. Every VAE knob value is implemented (IMPLEMENTS).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from asp_dist.data.mnist import PIXELS
-from asp_dist.domains import get_domain
 from asp_dist.domains.contract import Tensors
 from asp_dist.domains.vae.game import VAE, train_images
+from asp_dist.knobs import ANY, BASE_ONLY
 from asp_dist.spec import CellSpec
-from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import lambda_factor, method_weights
-from asp_dist.training.stacked import (
-    PackMember,
-    PackedTrainer,
-    StackedParams,
-    asp_members_first,
-    checked_members,
-    column,
-    member_terms,
-)
+from asp_dist.training.stacked import PackedTrainer, StackedParams, asp_members_first, column
 
-__all__ = ["PackedVAETrainer", "pack_key", "supports", "SHARED", "IN_SWEEPS"]
+__all__ = ["PackedVAETrainer", "pack_key", "IMPLEMENTS", "SHARED", "IN_SWEEPS"]
 
 # Sweeps leave VAE cells single (PackedVAETrainer.in_sweeps, asp_dist.training.engines.sweep_packs): on the 2-core CPU machine a
 # pack is slower per member-update than OnePassVAETrainer alone at every size and composition measured
@@ -99,25 +88,14 @@ IN_SWEEPS = False
 SHARED = ("domain", "train_steps", "batch_size", "vae_latent_dim", "vae_hidden", "disc_hidden", "disc_layers",
           "unpaired_batch", "disc_steps")
 CHUNK = 32  # updates whose random draws are made ahead (z's noise: CHUNK·K·batch·d floats)
-# The knob values this trainer implements (every value the spec accepts today); a cell with another
-# value is not packable and trains alone (OnePassVAETrainer).
-IMPLEMENTED = {"vae_recon_loss": ("bce", "mse"), "vae_adversary_input": ("mu", "z"),
-               "vae_paired_reduction": ("sum", "mean"), "adversary_loss": ("neg_bce", "non_saturating")}
-
-
-def supports(spec: CellSpec) -> bool:
-    """Whether `spec` can train in a pack: a VAE cell whose knob values are implemented (all of them)."""
-    spec = spec.resolved()
-    return spec.domain == "vae" and all(getattr(spec, k) in values for k, values in IMPLEMENTED.items())
-
-
-
-@dataclass(kw_only=True)
-class Member(PackMember):
-    """One cell of a pack, with its networks."""
-
-    agents: VAE  # parameters are views of the pack's buffer: always current
-    discs: tuple[torch.nn.Module, ...]  # (the discriminator,) of an ASP member, likewise; else ()
+# The knob values this update implements (asp_dist.knobs): every one; a cell with another value is not
+# packable and trains alone (OnePassVAETrainer).
+IMPLEMENTS = {
+    "vae_latent_dim": ANY, "vae_hidden": ANY, "vae_kl_weight": ANY, "vae_train_images": ANY,
+    "vae_recon_loss": ("bce", "mse"), "vae_adversary_input": ("mu", "z"), "vae_paired_reduction": ("sum", "mean"),
+    "adversary_loss": ("neg_bce", "non_saturating"),
+    "vae_base_lr": BASE_ONLY, "vae_base_batch": BASE_ONLY,
+}
 
 
 def _bce(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -134,43 +112,21 @@ class PackedVAETrainer(PackedTrainer):
     set `members[i].probe` as run_cell sets Trainer.probe)."""
 
     # Capabilities (asp_dist.training.engines): packs only; a lone VAE cell trains on OnePassVAETrainer.
+    domain = "vae"
     in_sweeps = IN_SWEEPS
-    supports = staticmethod(supports)
+    implements = IMPLEMENTS
     shared = SHARED  # the pack key (PackedTrainer.pack_key)
     member_order = staticmethod(asp_members_first)  # their rows of the pack are a prefix
 
     def __init__(self, specs: Sequence[CellSpec], paired: Sequence[Tensors], unpaired: Sequence[Tensors],
                  agents: Sequence[VAE]):
-        specs = checked_members(specs, paired, unpaired, agents, supports=supports, shared=SHARED,
-                                cannot="VAE cells only")
-        domain = get_domain("vae")
-        s0 = specs[0]
-        self.M, self.B, self.d, self.train_steps = len(specs), s0.batch_size, s0.vae_latent_dim, s0.train_steps
-        self.disc_steps, self.ub = s0.disc_steps, s0.unpaired_batch
+        discs = [d for (d,) in self._init_members(specs, paired, unpaired, agents, paired_rows="image")]
+        mem = self.members
+        s0 = mem[0].spec
+        self.B, self.d = s0.batch_size, s0.vae_latent_dim
         M, B, d = self.M, self.B, self.d
 
-        # ---- members: weights, generators and discriminators exactly as Trainer.__init__ ------------
-        self.members: list[Member] = []
-        discs: list[torch.nn.Module] = []
-        for spec, p, a in zip(specs, paired, agents):
-            weights = method_weights(spec)
-            gen = torch.Generator().manual_seed(spec.seed_for("train"))
-            disc = None
-            if weights.needs_adversary:
-                adv = Adversaries(domain.channel_dims(spec), spec.disc_hidden, spec.disc_layers, spec.disc_lr,
-                                  seed=spec.seed_for("init") + 1000, make_optimizer=lambda params, lr: None)
-                (disc,) = adv.discs.values()
-                discs.append(disc)
-            n = len(p["image"]) if weights.paired != 0.0 and p else 0
-            self.members.append(Member(spec=spec, weights=weights, agents=a, discs=(disc,) if disc is not None else (),
-                                       gen=gen, n_paired=n, terms=member_terms(weights, n)))
-        mem = self.members
         self.sp_rows = [i for i, m in enumerate(mem) if m.self_play]
-        self.any_self_play = bool(self.sp_rows)
-        self.adv_rows = [i for i, m in enumerate(mem) if m.adversary]
-        self.Ma = len(self.adv_rows)
-        self.adv_idx = torch.tensor(self.adv_rows, dtype=torch.long)
-        self.adv_first = self.adv_rows == list(range(self.Ma))  # the pipeline puts the ASP members first (member_order)
         # Members without self-play beside members with it: their self-play rows are computed (with
         # weight 0) on log σ² = 0, so nothing of theirs can overflow into a NaN gradient.
         self.sp_guard = None
@@ -277,10 +233,7 @@ class PackedVAETrainer(PackedTrainer):
                     torch.randint(high, (ub,), generator=gen, out=real[s * ds + k])
         if self.Ma:
             self.real_flat = (self.real_idx[:S * ds] + self.u_offset.unsqueeze(0)).view(S * ds, -1)
-            for a, i in enumerate(self.adv_rows):
-                spec, w = self.members[i].spec, self.members[i].weights
-                self.lam_now[:S, a] = torch.tensor([w.unpaired * lambda_factor(spec, start + s) for s in range(S)],
-                                                   dtype=torch.float64)
+            self._lambda_chunk(start, S)
             self.lam32[:S] = self.lam_now[:S].float()
 
     # ---- one update of every member -------------------------------------------------------------
@@ -359,18 +312,8 @@ class PackedVAETrainer(PackedTrainer):
                 out.zero_()
             else:
                 out.copy_(g.view_as(out))
-        # A member whose gradient is not finite is frozen before its Adam step (one reduction over
-        # the buffer per update; frozen members' gradients are zeroed first, so it sees new failures only).
-        self.net.zero_frozen_grads()
-        if not bool(torch.isfinite(self.net.grad.sum())):
-            self._freeze([i for i in range(M) if self.active[i]
-                          and not bool(torch.isfinite(self.net.member_flat(i, self.net.grad)).all())],
-                         "non-finite loss gradient")
-        self.net.step()
-        if record:
-            self._record(vals, j)
-        self.step += 1
-        self._finish_curve_point()
+        # One Adam step for every member (a member whose gradient is not finite frozen first).
+        self._step_model(vals, j, record)
 
     def _adversarial(self, mu: torch.Tensor, z: torch.Tensor, j: int, vals: dict | None) -> torch.Tensor:
         """disc_steps BCE steps of each ASP member's discriminator on U (real) against its self-play
@@ -399,13 +342,7 @@ class PackedVAETrainer(PackedTrainer):
                     vals["disc_acc_real"] = (real_l > 0).float().mean(1)
                     vals["disc_acc_fake"] = (fake_l < 0).float().mean(1)
                     vals["d_fake"] = torch.sigmoid(fake_l).mean(1)
-            # A member whose discriminator's gradient is not finite is frozen before its Adam step.
-            self.dnet.zero_frozen_grads()
-            if not bool(torch.isfinite(self.dnet.grad.sum())):
-                self._freeze([i for a, i in enumerate(self.adv_rows) if self.active[i]
-                              and not bool(torch.isfinite(self.dnet.member_flat(a, self.dnet.grad)).all())],
-                             "non-finite discriminator gradient")
-            self.dnet.step()
+            self._step_discriminators()  # a member whose discriminator's gradient is not finite frozen first
         # The model's term through the updated discriminators (their parameters as constants):
         # neg_bce -BCE(D(fake), 0), non-saturating BCE(D(fake), 1) (adversary.model_adversarial_loss).
         logits = self._disc_forward(fake, self.dnet.views)
