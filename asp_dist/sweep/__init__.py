@@ -15,8 +15,9 @@
 
 import os
 
-# Before any module of this package imports Ray: no usage stats, no Tune CSV/JSON/TensorBoard loggers per
-# trial (rows live in Parquet), the classic output.
+# Before any module of this package imports Ray: no usage stats, none of the logger callbacks Tune adds by
+# itself (its TensorBoard logger among them: rows live in Parquet; the JSON and CSV result logs are added
+# explicitly, tune._tune_result_logs), the classic output.
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
 os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")

@@ -1,4 +1,6 @@
-"""The sweep service on Ray Tune: one trial per cell, results in the store. The only Ray module.
+"""The sweep service on Ray Tune: one trial per cell, results in the store. The driver's side of Ray;
+the sweep package's other Ray modules are trial.py (what a Tune trial runs), ray_host.py (the Ray it runs
+on) and worker_start.py (what a worker skips at start). Nothing outside asp_dist.sweep imports Ray.
 
 Flow of ``run_sweep`` / ``resume_sweep``:
 
@@ -283,8 +285,9 @@ def _state_readable(experiment_dir: AnyPath) -> bool:
 
 def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], workers: int, max_failures: int,
               checkpoint_every_s: float) -> None:
-    # Rows live in Parquet, not in Tune's per-trial logs (disabled above): silence Tune's
-    # complaint that it cannot build its own result table from them.
+    # Rows live in Parquet, not in the results Tune keeps per trial (its JSON and CSV logs,
+    # _tune_result_logs, are on for Tune's own use): silence its complaint that it cannot build its
+    # result table from them.
     logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)
     state_log = logging.getLogger("ray.tune.execution.experiment_state")
     if not any(isinstance(f, _DiskFullLogFilter) for f in state_log.filters):

@@ -1,8 +1,9 @@
 """THE result row: what one finished cell records, and its pinned Arrow schema.
 
 run_cell builds the row here; the store (asp_dist.results.store) validates it against
-`schema()` and writes it; every reader reads with `schema()`. A column is added in one place,
-`_row_columns`, and everything downstream follows.
+`schema()` and writes it; every reader reads with `schema()`. A column is added in one place (a knob
+of CellSpec or a domain's card, a metric of a card, or one of `_identity_columns`, `_outcome_columns`,
+SWEEP_COLUMNS below), and everything downstream follows.
 
 No torch at import (only `environment_columns` asks for its version): the store, `asp-dist status` and
 `query` read and validate rows with this schema without loading torch.
