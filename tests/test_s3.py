@@ -575,7 +575,10 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     after = keys(s3, f"{run.results}/smoke/")
     assert {k: after[k] for k in cells} == {k: objects[k] for k in cells}, "a finished cell was rewritten"
     assert {k: after[k] for k in objects if "/env/1/" in k} == {k: v for k, v in objects.items() if "/env/1/" in k}
-    assert any(k.startswith(prefix + "env/2/") for k in after), "the second run's environment was not recorded"
+    assert set(after) == set(objects), f"a run that trained nothing wrote {sorted(set(after) - set(objects))}"
+    resumed = cli(s3, "resume", "smoke", "--results", run.results, "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
+    assert resumed.returncode == 0 and "nothing to resume" in resumed.stderr, resumed.stderr[-2000:]
+    assert keys(s3, f"{run.results}/smoke/") == after, "resuming a finished sweep wrote to the bucket"
     status = cli(s3, "status", "smoke", "--results", run.results, cwd=run.cwd)
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"] and "not running" in status.stdout
 

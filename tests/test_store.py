@@ -266,8 +266,8 @@ def test_verdict_index_spares_the_footers_of_known_files_and_never_hides_damage(
 
     fresh_process()
     opened = []
-    real = store.parquet_file
-    monkeypatch.setattr(store, "parquet_file", lambda p: opened.append(p) or real(p))
+    real = store.parquet_metadata
+    monkeypatch.setattr(store, "parquet_metadata", lambda p: opened.append(p) or real(p))
     assert store.cell_files(tmp_path) == paths and opened == [], "known files are not opened again"
 
     cut, replaced, kept = paths

@@ -200,8 +200,40 @@ def test_status_counts_a_later_success_over_an_old_failure(tmp_path, smoke_specs
     done, failed = ledger.finished_and_failed(sweep_dir, [s.cell_id for s in smoke_specs])
     assert done == {first.cell_id} and failed == {second.cell_id}
     text = ledger.sweep_status("exp", tmp_path)
-    assert text.splitlines()[-2].split() == ["total", "1", "1", "16"]
-    assert text.splitlines()[-1] == f"failed {second.cell_id}: RuntimeError: boom"
+    assert text.splitlines()[-3].split() == ["total", "1", "1", "16"]
+    assert text.splitlines()[-1] == f"  1 cell: RuntimeError: boom (first: {second.cell_id})"
+    listed = ledger.sweep_status("exp", tmp_path, list_failed=True)
+    assert listed.splitlines()[-1] == f"failed {second.cell_id}: RuntimeError: boom"
+
+
+def test_status_groups_failures_by_cause(tmp_path, smoke_specs):
+    """A base that met no bar is its trial's cause (every cell of the trial), other errors are grouped by
+    their last line with the numbers set aside; the causes with the most cells first."""
+    sweep_dir = tmp_path / "exp"
+    sweep_dir.mkdir()
+    store.write_manifest(sweep_dir, ledger.new_manifest("exp", "smoke", smoke_specs))
+    by_trial = {}
+    for s in smoke_specs:
+        by_trial.setdefault(s.trial, []).append(s)
+    (t0, cells0), (t1, cells1) = sorted(by_trial.items())
+    for s in cells0:
+        store.record_failure(sweep_dir, s.cell_id, s.domain, s.method,
+                             f"Traceback\nBaseRejected: {s.domain} base for trial {s.trial}: no attempt of 10 reached "
+                             f"the bar (scores [1.0, 2.0])")
+    for k, s in enumerate(cells1[:3]):
+        store.record_failure(sweep_dir, s.cell_id, s.domain, s.method, f"RuntimeError: non-finite loss at update {k + 7}")
+    store.record_failure(sweep_dir, cells1[3].cell_id, cells1[3].domain, cells1[3].method, "ValueError: odd")
+    lines = ledger.sweep_status("exp", tmp_path).splitlines()
+    attempts = cells0[0].resolved().base_max_attempts
+    first = min(s.cell_id for s in cells1[:3])
+    assert lines[-4:] == [
+        f"failed: {len(cells0) + 4} cells, 3 causes (asp-dist status exp --failed lists each cell)",
+        f"  1 signaling trial found no base in {attempts} attempts: {t0} — {len(cells0)} cells",
+        f"  3 cells: {store.last_error_line(store.failed_cells(sweep_dir)[first])} (first: {first})",
+        f"  1 cell: ValueError: odd (first: {cells1[3].cell_id})",
+    ]
+    assert sum(line.startswith("failed ") for line in ledger.sweep_status("exp", tmp_path, list_failed=True)
+               .splitlines()) == len(cells0) + 4
 
 
 def test_status_and_refused_inputs_never_import_ray(tmp_path, smoke_specs):

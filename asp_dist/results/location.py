@@ -587,6 +587,16 @@ def parquet_file(path: AnyPath):
     return pq.ParquetFile(path)
 
 
+def parquet_metadata(path: AnyPath):
+    """The footer (pyarrow.parquet.FileMetaData) of a local path or an S3 object, nothing else read."""
+    import pyarrow.parquet as pq
+
+    if isinstance(path, S3Path):
+        with path.open_input() as fh:
+            return pq.read_metadata(fh)
+    return pq.read_metadata(path)
+
+
 def read_parquet_schema(path: AnyPath) -> pa.Schema:
     import pyarrow.parquet as pq
 

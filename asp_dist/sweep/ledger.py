@@ -301,13 +301,15 @@ def finished_and_failed(sweep_dir: AnyPath, grid: Iterable[str], remember: bool 
 
 
 # ---- status --------------------------------------------------------------------------------------
-def sweep_status(name: str, results: str | AnyPath = store.DEFAULT_RESULTS) -> str:
-    """Done / failed / pending counts per domain and method, whether a run is going on, and the failures."""
+def sweep_status(name: str, results: str | AnyPath = store.DEFAULT_RESULTS, list_failed: bool = False) -> str:
+    """Done / failed / pending counts per domain and method, whether a run is going on, and the failures
+    grouped by cause (`list_failed`: every failed cell with its error instead)."""
     sweep_dir, manifest = read_sweep(results, name)
     done, failed = finished_and_failed(sweep_dir, manifest["cells"])
-    failures = store.failed_cells(sweep_dir)
+    failures = store.failed_cells(sweep_dir) if failed else {}
+    specs = dict(zip(manifest["cells"], manifest["specs"]))
     table: dict[tuple[str, str], list[int]] = {}
-    for cell_id, spec in zip(manifest["cells"], manifest["specs"]):
+    for cell_id, spec in specs.items():
         counts = table.setdefault((spec["domain"], spec["method"]), [0, 0, 0])
         counts[0 if cell_id in done else 1 if cell_id in failed else 2] += 1
     holder = lock_holder(sweep_dir)
@@ -319,6 +321,41 @@ def sweep_status(name: str, results: str | AnyPath = store.DEFAULT_RESULTS) -> s
         lines.append(f"{domain:<12}{method:<8}{d:>7}{f:>8}{p:>9}")
         totals = [totals[0] + d, totals[1] + f, totals[2] + p]
     lines.append(f"{'total':<20}{totals[0]:>7}{totals[1]:>8}{totals[2]:>9}")
-    for cell_id in sorted(failed):
-        lines.append(f"failed {cell_id}: {store.last_error_line(failures[cell_id])}")
+    if list_failed:
+        lines += [f"failed {cell_id}: {store.last_error_line(failures[cell_id])}" for cell_id in sorted(failed)]
+    elif failed:
+        causes = failure_causes(failed, failures, specs)
+        lines.append(f"failed: {len(failed)} cell{'s' * (len(failed) != 1)}, {len(causes)} "
+                     f"cause{'s' * (len(causes) != 1)} (asp-dist status {name} --failed lists each cell)")
+        lines += [f"  {cause}" for cause in causes]
     return "\n".join(lines)
+
+
+_NUMBERS = re.compile(r"\[[^\]]*\]|\d+(?:\.\d+)?")
+
+
+def failure_causes(failed: Iterable[str], records: dict[str, dict[str, Any]], specs: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per cause of the `failed` cells, the most cells first. A base that met no bar is a trial's
+    cause, shared by all its cells: "2 particles trials found no base in 10 attempts: 2089, 2166 — 18 cells".
+    Other errors are grouped by their last line with numbers and bracketed lists set aside (a divergence at
+    update 812 and one at 3,004 are one cause), each shown by its first cell's error."""
+    groups: dict[tuple, list[str]] = {}
+    for cell_id in sorted(failed):
+        line = store.last_error_line(records.get(cell_id, {}), width=100_000)
+        spec = specs.get(cell_id, {})
+        if line.startswith("BaseRejected"):
+            key: tuple = ("base", str(spec.get("domain")), spec.get("base_max_attempts"))
+        else:
+            key = ("error", _NUMBERS.sub("#", line))
+        groups.setdefault(key, []).append(cell_id)
+    out = []
+    for key, cells in sorted(groups.items(), key=lambda kv: (-len(kv[1]), kv[0])):
+        n = f"{len(cells)} cell{'s' * (len(cells) != 1)}"
+        if key[0] == "base":
+            trials = sorted({specs[c]["trial"] for c in cells})
+            attempts = f" in {key[2]} attempts" if key[2] is not None else ""
+            out.append(f"{len(trials)} {key[1]} trial{'s' * (len(trials) != 1)} found no base{attempts}: "
+                       f"{', '.join(map(str, trials))} — {n}")
+        else:
+            out.append(f"{n}: {store.last_error_line(records.get(cells[0], {}))} (first: {cells[0]})")
+    return out

@@ -513,8 +513,8 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                             _run_tune(sweep_dir, callback, pending, workers, max_failures, checkpoint_every_s)
                     if _DISK_FULL:
                         raise OSError(errno.ENOSPC, "No space left on device", _DISK_FULL[0] or str(sweep_dir))
-                else:
-                    _record_provenance(sweep_dir, plan, stream, tracking=options.tracking)
+                else:  # a run that trains nothing records nothing (no env/<n>/, locally or on S3)
+                    stream.write(f"sweep {name}: every cell is done; nothing to run\n")
                 done, failed = ledger.finished_and_failed(sweep_dir, grid, remember=True)
                 counter.update(done=done, failed=failed, running=set(), last_failure=last_failure(sweep_dir, failed))
                 counter.finish()
