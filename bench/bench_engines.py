@@ -1,5 +1,5 @@
 """Is the one cell pipeline as fast as the paths it replaced? Per member-update training time of the same
-cells in this tree and in an older revision, measured in one run on one machine (issue 20, item 10).
+cells in this tree and in an older revision, measured in one run on one machine.
 
     OMP_NUM_THREADS=1 python bench/bench_engines.py --rev 30b7675 --rounds 3 --json engines.json
 

@@ -11,7 +11,7 @@ view; revisions before f34a278 write the paper's tables, figures and report.md o
 
 `--rev REV` (repeatable) also times revision REV: `git worktree add --detach` of REV in the temporary
 directory, the command run from there with PYTHONPATH pointing at it (checked: `asp_dist` imports from the
-worktree), the worktree removed at the end. `f34a278^` is the revision before the rliable view (issue 21),
+worktree), the worktree removed at the end. `f34a278^` is the revision before the rliable view (2026-12-01),
 so "before" is the paper's tables alone. The working tree ("current") is always timed, after the revisions.
 `--bootstrap` takes a comma-separated list; `--bootstrap 10000` sets the resamples of the rliable view
 (and of the paper tables' median intervals: StatsConfig.n_boot is one number). The ratio lines compare the
@@ -19,7 +19,7 @@ working tree with the first --rev at every bootstrap size, and the working tree 
 the first --rev at each size. Besides the wall time of the process, the job's own log gives "tables s"
 (`read and analysed … in X s`: reading the rows and computing every table, the rliable view included) and
 "job s" (`… s in all`: the job without the interpreter's start and imports of the CLI).
-Issue 21's budget: the working tree at 10,000 resamples <= 2x before.
+The budget: the working tree at 10,000 resamples <= 2x before.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Sweep overhead benchmark (issue 3, point 9): the same 20 signaling cells run
+"""Sweep overhead benchmark: the same 20 signaling cells run
 
     (a) one after another in this process,
     (b) with multiprocessing.Pool(2),

@@ -1,5 +1,5 @@
 """What do the live trackers cost? End-to-end wall time of the same sweep with no logger and with each one,
-in one run on one machine (issue 22, item 7; the budget: <= 5 % for tensorboard and json).
+in one run on one machine (the budget: <= 5 % for tensorboard and json).
 
     python bench/bench_trackers.py --repeats 2 --json docs/bench-results/trackers-<date>.json
 

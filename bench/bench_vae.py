@@ -6,7 +6,7 @@ memory, and the floating-point work of an update against the machine's measured 
 --cells also runs one whole cell per method at the domain's defaults (train_steps updates plus
 evaluation on the 10k test images) on a base trained with --base-steps updates (the base's
 cost is reported separately: per update and extrapolated to the paper's 5,000).
-bench/bench_packing.py (issue 13's one run) imports its operation counts and timers.
+bench/bench_packing.py (the packing figures in one run) imports its operation counts and timers.
 """
 
 from __future__ import annotations

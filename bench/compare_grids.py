@@ -1,5 +1,5 @@
 """Do two runs of the same grid agree? Medians per (domain, method, paired[, knob]) with percentile-
-bootstrap 95 % intervals over trials, side by side: issue 13's check that packed and single-cell
+bootstrap 95 % intervals over trials, side by side: the check that packed and single-cell
 training give the same results up to noise.
 
     python bench/compare_grids.py results/paper-packed results/examples/paper-particles.parquet --domain particles
