@@ -8,6 +8,10 @@ holding sweep `paper`, the manifest of the paper grid (asp_dist.sweep.spaces.exp
 and one cell file per row of results/examples/paper-packed-2.parquet (the 1,470 rows of that grid, written
 with store.write_row: the layout `status` reads). `--rows N` writes only the first N rows (the rest pending).
 
+It also times `status replicate-particles` on the committed 1,800-cell replication
+(results/examples/replicate-particles: 1,782 rows, 18 failed cells; no verdict index there, so every footer
+is parsed, what a user meets on a copied sweep), with and without `--failed`.
+
 Rows of the table: `python -c pass` (the interpreter's own start, the floor), `--help`, `fields`,
 `fields --domain vae`, `status paper` twice: with no verdict index (every cell file's footer is parsed: a
 sweep whose files some other process wrote) and after the index a sweep's driver keeps (cells/.verified.json,
@@ -30,6 +34,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "results" / "examples" / "paper-packed-2.parquet"
+REPLICATION = REPO / "results" / "examples" / "replicate-particles"  # a finished sweep directory, read only
 SWEEP = "paper"
 
 
@@ -102,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
             f"status {SWEEP} (no index)": ["status", SWEEP, "--results", str(root)],
             f"status {SWEEP}": ["status", SWEEP, "--results", str(root)],
         }
+        if REPLICATION.is_dir():
+            commands["status replicate-particles (1,800 cells)"] = ["status", REPLICATION.name, "--results",
+                                                                    str(REPLICATION.parent)]
+            commands["status replicate-particles --failed"] = ["status", REPLICATION.name, "--results",
+                                                               str(REPLICATION.parent), "--failed"]
         if args.query:
             commands[f"query {SWEEP} --sql count(*)"] = ["query", SWEEP, "--results", str(root),
                                                          "--sql", "SELECT count(*) FROM cells"]
@@ -111,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, command in commands.items():
             if name.endswith("(no index)"):
                 index.unlink(missing_ok=True)
-            elif name.startswith("status"):
+            elif name.startswith(f"status {SWEEP}"):
                 remember_verdicts(root)
             times = time_command(command, args.repeats)
             results[name] = {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times),
@@ -121,9 +131,9 @@ def main(argv: list[str] | None = None) -> int:
         if scratch is not None:
             scratch.cleanup()
 
-    print(f"\n{'command':<32}{'median s':>10}{'min s':>9}{'max s':>9}   ({args.repeats} runs each, fresh processes)")
+    print(f"\n{'command':<44}{'median s':>10}{'min s':>9}{'max s':>9}   ({args.repeats} runs each, fresh processes)")
     for name, r in results.items():
-        print(f"{name:<32}{r['median_s']:>10.3f}{r['min_s']:>9.3f}{r['max_s']:>9.3f}")
+        print(f"{name:<44}{r['median_s']:>10.3f}{r['min_s']:>9.3f}{r['max_s']:>9.3f}")
     print(f"load average (1, 5, 15 min): before {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f}, "
           f"after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; {os.cpu_count()} cores")
     if args.json:
