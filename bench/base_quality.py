@@ -30,7 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
-from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.commands.common import parse_overrides  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import BaseRejected, train_accepted_base  # noqa: E402
 

@@ -19,7 +19,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 from _common import peak_rss_mib  # noqa: E402
 
-from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.commands.common import parse_overrides  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402

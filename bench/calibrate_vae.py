@@ -21,7 +21,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from asp_dist.cli import parse_overrides  # noqa: E402
+from asp_dist.commands.common import parse_overrides  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402

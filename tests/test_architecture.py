@@ -2,7 +2,8 @@
 
     plugins → cli → analysis → sweep → tracking → results → training → spec → domains → data → foundations
 
-(foundations: errors, hashing, nn, fsutil, knobs, plugins, method_registry; `domains` is the domain core,
+(foundations: errors, hashing, nn, fsutil, knobs, plugins, method_registry; `cli` is the entry point asp_dist.cli
+and its commands, asp_dist.commands.*, which never import it back; `domains` is the domain core,
 asp_dist.domains itself, its contract and its registry). A module may import from its own stage or any
 stage below it, never from above, and no two modules import each other, directly or through others.
 Imports under `if TYPE_CHECKING:` (annotations only) count as imports: an annotation that points up a stage
@@ -23,6 +24,7 @@ STAGES = ["cli", "analysis", "sweep", "tracking", "results", "training", "spec",
 FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry", "machine"]
 DOMAIN_CORE = ("asp_dist.domains", "asp_dist.domains.contract", "asp_dist.domains.registry")
 PLUGIN_STAGE = -2  # a built-in domain's package: above every stage
+SAME_STAGE = {"commands": "cli"}  # asp_dist.commands.*: the subcommands that asp_dist.cli assembles
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +41,7 @@ def stage_of(module: str) -> int:
     if is_builtin_domain(module):
         return PLUGIN_STAGE
     part = module.split(".")[1] if module.count(".") else ""
+    part = SAME_STAGE.get(part, part)
     if part in STAGES:
         return STAGES.index(part)
     if part in FOUNDATIONS:
@@ -75,10 +78,17 @@ def test_no_import_cycles(graph):
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
 
 
+def test_commands_do_not_import_the_entry_point(graph):
+    """asp_dist.cli assembles the commands (build_parser) and runs one (main); a command needs neither."""
+    bad = sorted(m for m in graph.modules if m.startswith("asp_dist.commands")
+                 and graph.chain_exists(importer=m, imported="asp_dist.cli"))
+    assert not bad, f"command modules that import asp_dist.cli: {bad}"
+
+
 # The core knows domains only through the registry (entry points) and the contract: no core module imports a
 # domain's package, not even for annotations (a plugin must be able to stand where the built-ins stand).
 CORE = ("asp_dist.spec", "asp_dist.training", "asp_dist.sweep", "asp_dist.results", "asp_dist.analysis",
-        "asp_dist.cli", *DOMAIN_CORE)
+        "asp_dist.cli", "asp_dist.commands", *DOMAIN_CORE)
 
 
 def test_the_core_imports_no_domain_package(graph):

@@ -21,6 +21,8 @@ from harness import fingerprint
 import asp_dist.training.cell as cell_module
 from asp_dist import cli
 from asp_dist.cli import main
+from asp_dist.commands import cell as cell_command
+from asp_dist.commands import stats as stats_command
 from asp_dist.data import mnist
 from asp_dist.results import store
 from asp_dist.spec import FIELD_NAMES, field_type
@@ -29,7 +31,7 @@ from asp_dist.sweep.ledger import new_manifest
 run_cell = cell_module.run_cell  # the real one, for building the sweep; the tests see a stand-in
 
 FLOAT_KNOBS = [n for n in FIELD_NAMES if field_type(n) is float]
-INT_KNOBS = [n for n in FIELD_NAMES if field_type(n) is int and n not in cli.CELL_FLAGS]
+INT_KNOBS = [n for n in FIELD_NAMES if field_type(n) is int and n not in cell_command.CELL_FLAGS]
 
 
 # ---- the world every case runs in: built once ------------------------------------------------------------
@@ -132,7 +134,7 @@ def nothing_may_run(monkeypatch):
     fake_tune.run_plan = fake_tune.run_sweep = fake_tune.resume_sweep = refuse
     monkeypatch.setitem(sys.modules, "asp_dist.sweep.tune", fake_tune)  # never Ray
     monkeypatch.setattr(cell_module, "run_cell", refuse)
-    monkeypatch.setattr(cli, "run_stats_job", refuse)
+    monkeypatch.setattr(stats_command, "run_stats_job", refuse)
     mnist.clear_cache()
     yield
     mnist.clear_cache()

@@ -12,7 +12,8 @@ from test_stats import make_rows, write_sweep
 from asp_dist.analysis.job import compute
 from asp_dist.analysis.plots import plot_all
 from asp_dist.analysis.tables import StatsConfig
-from asp_dist.cli import main, run_stats_job
+from asp_dist.cli import main
+from asp_dist.commands.stats import run_stats_job
 
 
 @pytest.fixture

@@ -407,7 +407,7 @@ def test_missing_metric_column_is_a_clear_error():
 
 def test_real_run_cell_rows_go_through_the_whole_job(tmp_path):
     """Rows from run_cell itself (tiny signaling cells), stored as the sweep service stores them."""
-    from asp_dist.cli import run_stats_job
+    from asp_dist.commands.stats import run_stats_job
     from asp_dist.spec import CellSpec
     from asp_dist.training.cell import run_cell
 
@@ -547,7 +547,7 @@ def test_latex_escapes_and_numbers():
 
 def test_stats_job_writes_report_md_html_and_latex_by_default(tmp_path):
     from asp_dist.analysis.latex_tables import LATEX_TABLES
-    from asp_dist.cli import run_stats_job
+    from asp_dist.commands.stats import run_stats_job
 
     sweep = write_sweep(tmp_path / "all", make_rows(trials=range(4)))
     report = run_stats_job([str(sweep)], cfg=cfg(), log=lambda m: None)

@@ -178,6 +178,10 @@ def test_smoke_sweep_end_to_end(smoke):
     assert {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)} == mtimes
     assert {f: f.stat().st_mtime_ns for f in first.iterdir()} == env_mtimes
     assert "nothing to run" in again.stderr and sorted(p.name for p in (sweep_dir / "env").iterdir()) == ["1"]
+    # Resuming it is a no-op that says so: no Ray, no lock taken, nothing recorded.
+    resumed = cli("resume", "smoke", "--results", str(results))
+    assert resumed.returncode == 0 and "all 18 cells are done; nothing to resume" in resumed.stderr, resumed.stderr
+    assert "Ray" not in resumed.stderr and sorted(p.name for p in (sweep_dir / "env").iterdir()) == ["1"]
     status = cli("status", "smoke", "--results", str(results))
     assert status.stdout.splitlines()[-1].split() == ["total", "18", "0", "0"]
 

@@ -36,6 +36,7 @@ from harness import (
 )
 
 from asp_dist import cli
+from asp_dist.commands import sweep as sweep_command
 from asp_dist.data.mnist import MNISTError
 from asp_dist.results import store
 from asp_dist.sweep import ledger, preflight, signals
@@ -97,7 +98,7 @@ def test_address_and_connect_timeout_flags(tmp_path, capsys):
 
 
 def test_dashboard_needs_its_packages(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli, "DASHBOARD_MODULES", ("surely_not_installed_asp_module",))
+    monkeypatch.setattr(sweep_command, "DASHBOARD_MODULES", ("surely_not_installed_asp_module",))
     assert cli.main(["sweep", "smoke", "--results", str(tmp_path / "r"), "--dashboard"]) == 2
     assert "--dashboard needs Ray's dashboard packages (surely_not_installed_asp_module" in capsys.readouterr().err
 

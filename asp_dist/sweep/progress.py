@@ -2,7 +2,7 @@
 cells per minute, ETA, the last failure's reason and where the rows go.
 
 A cell's own progress is something else: ProgressFn callbacks (asp_dist.domains.contract), which
-`asp-dist cell` prints with cli.CellProgressPrinter. Knows nothing of Ray: the sweep feeds it the
+`asp-dist cell` prints with asp_dist.commands.cell.CellProgressPrinter. Knows nothing of Ray: the sweep feeds it the
 ids of the cells that are done, failed and running.
 
 On a terminal the view is one live block redrawn in place (rich), at most 80 columns wide. Into a
