@@ -1,7 +1,7 @@
 """The machine a process runs on, as a row and a run's record name it. No torch, no Ray at import.
 
-Float results reproduce bit for bit only on the CPU kind that made them (docs/decisions.md, "Numerics across
-CPUs"), so every row says which CPU trained it and every run record which CPU drove it.
+Float results reproduce bit for bit only on the CPU kind that made them (docs/decisions/0024-numerics-across-cpus.md,
+0041-every-row-names-its-cpu.md), so every row says which CPU trained it and every run record which CPU drove it.
 """
 
 from __future__ import annotations

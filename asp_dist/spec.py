@@ -297,7 +297,8 @@ class _CommonKnobs:
 
 
 # Knobs every domain uses, with the value a domain gets unless its `defaults` say otherwise
-# (particles: robust bases and a λ1 warm-up, chosen by the reproduction study; docs/decisions.md).
+# (particles: robust bases and a λ1 warm-up, chosen by the reproduction study;
+# docs/decisions/0021-domain-defaults-from-reproduction-study.md).
 COMMON_DEFAULTS: dict[str, Any] = {
     "lambda_unpaired_schedule": "constant", "lambda_schedule_frac": 0.5,
     "base_max_attempts": 5, "base_steps_growth": 1.0,

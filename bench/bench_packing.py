@@ -45,7 +45,7 @@ median of three measurements: before and after the cells' updates, after the bas
 cell's trainer has run (MNIST loaded, before the other trainers and the base exist). Where run_cell's
 trainer is a fast one, the reference update (training.trainer.Trainer) is timed beside it. Stacked
 VAEs: the self-play update of K = 1, 4, 8, 21 VAEs through batched matmuls (stacked_vae_cpu_ms),
-the prototype that preceded the VAE's packed trainer (docs/decisions.md, "Packed VAE trainer"); that
+the prototype that preceded the VAE's packed trainer (docs/decisions/0022-packed-vae-trainer-out-of-sweeps.md); that
 trainer itself is benchmarked with the other packed domains.
 
 Load on a shared machine inflates every figure: the load averages are printed and stored.

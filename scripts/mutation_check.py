@@ -1,6 +1,6 @@
 """The suite still catches what matters: break the code in one way at a time and run the tests meant to catch
 it. Each mutation is a one-place text change in a source file (applied, then always restored); a mutation
-"is caught" when the named tests fail. Prints a Markdown table (the one in docs/decisions.md).
+"is caught" when the named tests fail. Prints a Markdown table (the one in docs/decisions/0029-mutation-check.md).
 
     python scripts/mutation_check.py            # every mutation (a few minutes on two cores)
     python scripts/mutation_check.py --only 3   # one of them

@@ -95,8 +95,9 @@ def test_power_tests_its_resamples_at_once_as_the_one_by_one_loop_did():
     ("vae", {"lambda_unpaired": 10.0, "adversary_loss": "neg_bce"}, [0, 1, 1, 2, 2, 3]),
 ])
 def test_select_on_the_committed_calibration_rows_gives_the_registered_answer(domain, winner, changed):
-    """A later change of a domain default (docs/decisions.md) must not change what the rule picks or
-    how it counts changed knobs: they are counted from the registered defaults."""
+    """A later change of a domain default (docs/decisions/0021-domain-defaults-from-reproduction-study.md)
+    must not change what the rule picks or how it counts changed knobs: they are counted from the
+    registered defaults."""
     candidates = settings(read_rows(EXAMPLES / f"calib-{domain}"), domain)
     chosen = select(candidates)
     assert {k: chosen.knobs[k] for k in winner} == winner and chosen.changed == 1

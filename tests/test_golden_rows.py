@@ -2,10 +2,10 @@
 tests/golden/rows.parquet (recorded before the package was restructured; re-recorded when the engine
 changed on purpose: on 2026-11-24 — the fused particle kernel retired for a pack of one, the VAE on
 fused Adam and a one-pass update — which moved 5 of 13 cells' floats by at most 2.1e-7 relative and
-no metric beyond 1e-7: docs/decisions.md "Fused particle kernel retired" and "VAE: fused Adam and
-one pass per network"; on 2026-11-25 — single lever cells as packs of one — which moved the 3 lever
-cells' loss columns by at most 6.6e-8 relative and no metric). Columns added since must be spec knobs at their
-neutral value, so old rows stay what new code would write.
+no metric beyond 1e-7: docs/decisions/0018-lone-particle-cell-is-a-pack-of-one.md and
+docs/decisions/0019-vae-fused-adam-one-pass.md; on 2026-11-25 — single lever cells as packs of one — which
+moved the 3 lever cells' loss columns by at most 6.6e-8 relative and no metric). Columns added since
+must be spec knobs at their neutral value, so old rows stay what new code would write.
 
 Exact where exactness is guaranteed: integer, bool and string columns, and the spec's own fields
 (inputs, no arithmetic), always; computed floats only on a machine whose fingerprint

@@ -53,8 +53,9 @@ BUILT_IN = sorted(d for d in DOMAINS if DOMAINS[d].legacy_identity)  # the study
 
 @pytest.mark.parametrize("domain", BUILT_IN)
 def test_domain_defaults_of_the_common_knobs(domain):
-    """Particles and the VAE take the reproduction study's settings (docs/decisions.md); the rest keep
-    COMMON_DEFAULTS; PC and OSP never carry a λ1 schedule (they have no adversary)."""
+    """Particles and the VAE take the reproduction study's settings
+    (docs/decisions/0021-domain-defaults-from-reproduction-study.md); the rest keep COMMON_DEFAULTS; PC
+    and OSP never carry a λ1 schedule (they have no adversary)."""
     chosen = {"particles": dict(lambda_unpaired_schedule="warmup", lambda_schedule_frac=0.5,
                                 base_steps_growth=1.5, base_max_attempts=10)}
     asp = CellSpec(domain=domain, method="asp").resolved()

@@ -9,8 +9,8 @@ the sweep. No Ray: the cell runs in this process, on one thread as a sweep's wor
 
 Bit-identical is the expected answer on the same code, packages and CPU. Otherwise the report names the
 columns that differ and what differs in the row's provenance (code revision, package versions, whether the
-stored row came from a pack); a CPU with other vector kernels rounds differently (docs/decisions.md,
-"Numerics across CPUs").
+stored row came from a pack); a CPU with other vector kernels rounds differently
+(docs/decisions/0024-numerics-across-cpus.md).
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class Replay:
             lines += [f"  {c}: stored {_show(a)}, now {_show(b)}" for c, a, b in self.provenance]
         elif not self.identical:
             lines.append("same code revision and package versions: a CPU with other vector kernels rounds "
-                         "differently (docs/decisions.md, \"Numerics across CPUs\"); on the machine that made the "
+                         "differently (docs/decisions/0024-numerics-across-cpus.md); on the machine that made the "
                          "row this is a reproducibility bug")
         return "\n".join(lines)
 

@@ -202,7 +202,8 @@ def environment_columns() -> dict[str, Any]:
     return {
         "node": socket.gethostname(),
         # The CPU and the vector kernels torch picked on it: floats reproduce bit for bit only on the same kind
-        # (docs/decisions.md, "Numerics across CPUs"). Rows written before this column read it as null.
+        # (docs/decisions/0024-numerics-across-cpus.md, 0041-every-row-names-its-cpu.md). Rows written before
+        # this column read it as null.
         "cpu_model": f"{cpu_model()} ({torch.backends.cpu.get_cpu_capability()})",
         "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "asp_dist_version": __version__,

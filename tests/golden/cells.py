@@ -23,8 +23,9 @@ TINY = {
 
 
 # The defaults in force when the rows were recorded, where a domain's default changed since on
-# purpose (the reproduction study, 2026-11-25: docs/decisions.md). Pinned so the rows keep
-# checking that the code did not change behaviour; the new defaults are tested in test_knobs.py.
+# purpose (the reproduction study, 2026-11-25: docs/decisions/0021-domain-defaults-from-reproduction-study.md).
+# Pinned so the rows keep checking that the code did not change behaviour; the new defaults are tested in
+# test_knobs.py.
 OLD_DEFAULTS = {
     "particles": dict(lambda_unpaired_schedule="constant", base_steps_growth=1.0, base_max_attempts=5),
     "vae": dict(lambda_unpaired=1.0),

@@ -18,7 +18,7 @@ The new agents train with hand-derived gradients (asp_dist/domains/particles/pac
 cell as a pack of one); the autograd functions here (a2c_update, paired_loss) are the reference
 that trainer is tested against, and train the base and the cells it does not implement.
 
-Choices the paper leaves open (measurements in docs/decisions.md, "Particle world"): the target
+Choices the paper leaves open (measurements in docs/decisions/0007-particle-world.md): the target
 is drawn in [-4, 4]² (the ≥ 300 bar is reachable from everywhere there); the reward is paid for
 the position after the move; actions are sampled from the listener's softmax in evaluation as
 in training; the new agents' batch of 8 is 8 staggered envs advanced one step per update
@@ -81,7 +81,8 @@ class ParticlesDomain(GameDomain):
         train_steps=25000, batch_size=8, lr=1e-3,
         disc_hidden=64, disc_layers=1, disc_lr=1e-3,
         base_train_steps=3000, eval_episodes=1000,
-        # Chosen by the reproduction study (docs/reproduction.md, docs/decisions.md): λ1 warms up over
+        # Chosen by the reproduction study (docs/reproduction.md,
+        # docs/decisions/0021-domain-defaults-from-reproduction-study.md): λ1 warms up over
         # the first half so self-play settles before the adversary pulls, and a base that misses the
         # bar is retried with a growing budget (1.5^k) up to 10 times, so that a trial does not lose its
         # cells to unlucky seeds (every trial of the confirmatory run and the paper grid got a base).

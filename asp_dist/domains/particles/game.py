@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
 
 BOX = 5.0                 # the world is [-BOX, BOX]²
-TARGET_BOX = 4.0          # targets are drawn in [-TARGET_BOX, TARGET_BOX]² (see docs/decisions.md)
+TARGET_BOX = 4.0          # targets are drawn in [-TARGET_BOX, TARGET_BOX]² (see docs/decisions/0007-particle-world.md)
 NEAR = 1.4                # within this distance of the target the reward is NEAR_REWARD
 NEAR_REWARD = 10.0
 REWARD_SCALE = 0.1        # A2C trains on reward/10 so values stay O(10); reported returns are raw

@@ -10,9 +10,9 @@ forward and backward passes and no graph, and stacks the parameters of K cells (
 leading dimension, so that each tensor op serves K cells (batched matmuls); one batched Adam step
 (torch._fused_adam_, one pass over the stacked buffer) updates them all. run_cell trains a
 particle cell as a one-member pack of it (`lone = True`, asp_dist.training.engines), which
-is faster than the single-cell hand-derived kernel it replaced (docs/decisions.md, "Fused
-particle kernel retired"). tests/test_packed_particles.py checks the one-member pack against the
-autograd reference, tests/test_packed.py packs of every size.
+is faster than the single-cell hand-derived kernel it replaced
+(docs/decisions/0018-lone-particle-cell-is-a-pack-of-one.md). tests/test_packed_particles.py checks the
+one-member pack against the autograd reference, tests/test_packed.py packs of every size.
 
 The order of one update is the reference's:
   1. self-play rollout (A2C, messages kept) and the paired forward pass;
@@ -131,7 +131,8 @@ class PackedParticleTrainer(PackedTrainer):
     Trainer.probe)."""
 
     # Capabilities (asp_dist.training.engines): packs, and a single particle cell trains as a pack of one
-    # (faster than the single-cell kernel it replaced: docs/decisions.md). Members in the order given.
+    # (faster than the single-cell kernel it replaced:
+    # docs/decisions/0018-lone-particle-cell-is-a-pack-of-one.md). Members in the order given.
     domain = "particles"
     lone = True
     implements = IMPLEMENTS

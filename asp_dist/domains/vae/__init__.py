@@ -71,13 +71,15 @@ class VAEDomain(GameDomain):
         base_train_steps=5000,
         train_steps=1000, batch_size=64, lr=1e-3,
         # λ1 = 10: at 1 the discriminator wins outright and the saturating -BCE gives the model ~1 % of
-        # its gradient (reproduction study: docs/reproduction.md, docs/decisions.md).
+        # its gradient (reproduction study: docs/reproduction.md,
+        # docs/decisions/0021-domain-defaults-from-reproduction-study.md).
         lambda_paired=1.0, lambda_unpaired=10.0, unpaired_size=2048,
         disc_hidden=64, disc_layers=2, disc_lr=1e-3,
         eval_episodes=10_000,
     )
     # One Adam kernel for all parameters: 0.48 ms per step of the 853k-parameter VAE against 2.6 ms
-    # for torch's default per-tensor loop (one thread; docs/decisions.md), a quarter of an OSP update.
+    # for torch's default per-tensor loop (one thread; docs/decisions/0019-vae-fused-adam-one-pass.md), a
+    # quarter of an OSP update.
     optimizer_options = {"fused": True}
     unpaired_fields = ("vae_adversary_input",)  # U holds the base's μ or sampled z
     metrics = {

@@ -4,7 +4,7 @@ In an OSP or ASP update the reference path runs the new VAE's encoder twice (the
 then P's images) and its decoder twice (the sampled codes, then P's encodings). Every weight is
 then used by two graphs, and autograd accumulates each weight's two gradients with an extra
 tensor add: 13 adds of up to 400k floats per update, memory-bound (a third of an update's time in a
-profile on the loaded machine: docs/decisions.md, "VAE: fused Adam and one pass per network"). This
+profile on the loaded machine: docs/decisions/0019-vae-fused-adam-one-pass.md). This
 trainer stacks the self-play rows and P's rows into one batch per network, so each weight is used
 once: the same loss terms, the same random draws in the same order, one matmul per layer and no
 accumulation. Idle, an OSP update takes 11 % and an ASP update 9 % less CPU than the reference's
