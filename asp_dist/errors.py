@@ -21,7 +21,7 @@ class SchemaError(SpecError):
 
 class StorageError(SweepError):
     """Object storage that cannot be used as asked: an endpoint that does not answer, refused
-    credentials, a missing bucket (asp_dist.results.location). One line, exit 2, like any SweepError;
+    credentials, a missing bucket (asp_dist.results.s3). One line, exit 2, like any SweepError;
     inside a running cell it is a crash (retried), never a deterministic failure of the cell."""
 
 

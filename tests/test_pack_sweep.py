@@ -458,6 +458,7 @@ def s3_server(tmp_path_factory):
 def test_pack_trainable_on_s3(trainable, tmp_path, s3_server, monkeypatch):
     """The same trial with the sweep in a bucket: rows, curves and the shared bases through the store."""
     from asp_dist.results import location
+    from asp_dist.results import s3 as results_s3
 
     test_s3, env = s3_server
     test_s3.use_env(monkeypatch, env)
@@ -473,8 +474,8 @@ def test_pack_trainable_on_s3(trainable, tmp_path, s3_server, monkeypatch):
         assert_rows(rows, direct_rows([unit], store.bases_dir(sweep_dir)))
         assert not (tmp_path / "exp").exists()
     finally:
-        location._CLIENTS.clear()
-        location._BUCKETS_CHECKED.clear()
+        results_s3._CLIENTS.clear()
+        results_s3._BUCKETS_CHECKED.clear()
 
 
 # ---- sweeps on Ray -------------------------------------------------------------------------------------------

@@ -84,15 +84,15 @@ def s3(tmp_path_factory):
 
 def use_env(monkeypatch, env: dict[str, str]) -> None:
     """This process talks to `env`'s endpoint with its credentials (clients and bucket checks made afresh)."""
-    from asp_dist.results import location
+    from asp_dist.results import s3 as results_s3
 
     for key in [k for k in os.environ if k.startswith("AWS_")]:
         monkeypatch.delenv(key)
     for key, value in env.items():
         if key.startswith("AWS_"):
             monkeypatch.setenv(key, value)
-    location._CLIENTS.clear()
-    location._BUCKETS_CHECKED.clear()
+    results_s3._CLIENTS.clear()
+    results_s3._BUCKETS_CHECKED.clear()
 
 
 @pytest.fixture
@@ -100,10 +100,10 @@ def on_s3(s3, monkeypatch, request):
     """In-process use of the server; a prefix of its own for the test."""
     use_env(monkeypatch, s3.env)
     yield f"s3://{BUCKET}/{request.node.name.replace('[', '-').replace(']', '')}"
-    from asp_dist.results import location
+    from asp_dist.results import s3 as results_s3
 
-    location._CLIENTS.clear()
-    location._BUCKETS_CHECKED.clear()
+    results_s3._CLIENTS.clear()
+    results_s3._BUCKETS_CHECKED.clear()
 
 
 def keys(s3, prefix: str) -> dict[str, tuple[str, object]]:
@@ -182,7 +182,8 @@ def test_tune_storage_on_s3_sends_each_unchanged_file_once_through_tunes_own_thr
 def test_store_round_trip_on_s3_equals_local(s3, on_s3, tmp_path, capsys):
     from asp_dist.errors import SchemaError
     from asp_dist.results import store
-    from asp_dist.results.location import S3Path, as_path
+    from asp_dist.results.location import as_path
+    from asp_dist.results.s3 import S3Path
     from asp_dist.sweep import ledger
     from asp_dist.sweep.spaces import expand
 
@@ -541,7 +542,8 @@ def smoke_on_s3(s3, tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.xdist_group("smoke-s3")  # shares a module fixture: one worker
 def test_smoke_sweep_on_s3(s3, smoke_on_s3):
-    from asp_dist.results import location, store
+    from asp_dist.results import s3 as results_s3
+    from asp_dist.results import store
     from asp_dist.sweep.spaces import expand
 
     run = smoke_on_s3
@@ -567,7 +569,7 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     with pytest.MonkeyPatch.context() as mp:
         use_env(mp, s3.env)
         df = store.read_rows(f"{run.results}/smoke")
-        location._CLIENTS.clear()
+        results_s3._CLIENTS.clear()
     assert set(df["cell_id"]) == {s.cell_id for s in expand("smoke")} and df["ray_node_id"].notna().all()
 
     again = cli(s3, "sweep", "smoke", "--results", run.results, "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
@@ -575,7 +577,9 @@ def test_smoke_sweep_on_s3(s3, smoke_on_s3):
     after = keys(s3, f"{run.results}/smoke/")
     assert {k: after[k] for k in cells} == {k: objects[k] for k in cells}, "a finished cell was rewritten"
     assert {k: after[k] for k in objects if "/env/1/" in k} == {k: v for k, v in objects.items() if "/env/1/" in k}
-    assert set(after) == set(objects), f"a run that trained nothing wrote {sorted(set(after) - set(objects))}"
+    # It took the sweep's lease (a new generation under .lease/) to check the grid, and wrote nothing else.
+    unleased = {k for k in after if "/.lease/" not in k}
+    assert unleased == {k for k in objects if "/.lease/" not in k}, f"a run that trained nothing wrote {sorted(unleased - set(objects))}"
     resumed = cli(s3, "resume", "smoke", "--results", run.results, "--ray-temp-dir", run.ray_temp, cwd=run.cwd)
     assert resumed.returncode == 0 and "nothing to resume" in resumed.stderr, resumed.stderr[-2000:]
     assert keys(s3, f"{run.results}/smoke/") == after, "resuming a finished sweep wrote to the bucket"
@@ -620,7 +624,8 @@ def test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once_on_s3(s
     - resume restores Tune's experiment from the bucket: every cell once, rows as uninterrupted, a cell running
       at the kill continued from its checkpoint, nothing on the local disk.
     Runs after the other smoke_on_s3 tests (it changes the sweep they read)."""
-    from asp_dist.results import location, store
+    from asp_dist.results import s3 as results_s3
+    from asp_dist.results import store
     from asp_dist.sweep.spaces import expand
 
     run = smoke_on_s3
@@ -632,7 +637,7 @@ def test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once_on_s3(s
         with pytest.MonkeyPatch.context() as mp:
             use_env(mp, s3.env)
             df = store.read_rows(f"{run.results}/smoke")
-            location._CLIENTS.clear()
+            results_s3._CLIENTS.clear()
         return df
 
     rows = comparable_rows(read_rows())
@@ -721,7 +726,8 @@ def test_two_node_cluster_with_results_on_s3_and_none_on_disk(s3, tmp_path, two_
     its cells run on both nodes, and with results on S3 nothing lands on any node's disk. (The suite's one
     multi-node sweep: a cluster costs it two Ray start-ups, and this one covers what a cluster on a shared
     local disk would, plus the nodes that share nothing.)"""
-    from asp_dist.results import location, store
+    from asp_dist.results import s3 as results_s3
+    from asp_dist.results import store
 
     cluster = two_nodes_without_shared_disk
     grid = space(tmp_path, """
@@ -744,7 +750,7 @@ axes = { domain = ["signaling"], method = ["osp", "asp"], paired = [0, 2, 4] }
     with pytest.MonkeyPatch.context() as mp:
         use_env(mp, s3.env)
         df = store.read_rows(f"{results}/c")
-        location._CLIENTS.clear()
+        results_s3._CLIENTS.clear()
     assert len(df) == 6 and df["cell_id"].is_unique
     assert df["ray_node_id"].nunique() == 2, df[["cell_id", "ray_node_id"]]
     roots = [*cluster.dirs.values(), *cluster.temps]

@@ -145,7 +145,7 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
     from asp_dist.analysis.latex_tables import write_latex_tables
     from asp_dist.analysis.report import build_report
     from asp_dist.analysis.rliable_plots import plot_rliable
-    from asp_dist.results.location import upload_tree
+    from asp_dist.results.s3 import upload_tree
 
     start = time.perf_counter()
     result = run_stats(located, cfg)

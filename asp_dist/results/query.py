@@ -26,7 +26,8 @@ import pyarrow.parquet as pq
 
 from asp_dist.errors import SchemaError, SpecError
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, parquet_dataset, read_parquet_schema
+from asp_dist.results.location import AnyPath, parquet_dataset, read_parquet_schema
+from asp_dist.results.s3 import S3Path
 
 KEY_COLUMNS = ("domain", "method", "paired", "trial")
 DEFAULT_ORDER = ("domain", "method", "paired", "trial")
@@ -38,7 +39,7 @@ STATS_DIR = "stats"  # the stats job's output tables inside a sweep or --out dir
 class Inputs:
     """The Parquet files behind one or more inputs, and the sweep directories among the inputs."""
 
-    files: list[AnyPath]  # local Paths or S3Paths (asp_dist.results.location)
+    files: list[AnyPath]  # local Paths or S3Paths (asp_dist.results.location, .s3)
     sweep_dirs: list[AnyPath] = field(default_factory=list)
     schema: pa.Schema | None = None
 

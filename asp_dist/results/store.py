@@ -27,7 +27,7 @@ Everything that knows this layout is here; the sweep ledger, ``asp-dist query`` 
 job ask this module. No Ray import: results are read without starting Ray.
 
 A sweep lives in a local directory (a ``Path``: every local code path is unchanged) or under an
-S3 prefix (``s3://bucket/prefix/<sweep>``, an ``asp_dist.results.location.S3Path`` with the same
+S3 prefix (``s3://bucket/prefix/<sweep>``, an ``asp_dist.results.s3.S3Path`` with the same
 pathlib API). On S3 a cell's file is one conditional PUT (``If-None-Match: *``): created once,
 atomically, never overwritten; a failure record or the manifest is one whole-object PUT.
 """
@@ -46,9 +46,7 @@ import pyarrow as pa
 from asp_dist.errors import SchemaError
 from asp_dist.results.location import (
     AnyPath,
-    S3Path,
     as_path,
-    check_bucket,
     move_aside,
     parquet_dataset,
     parquet_file,
@@ -56,6 +54,7 @@ from asp_dist.results.location import (
     write_replace,
     write_table_once,
 )
+from asp_dist.results.s3 import S3Path, check_bucket
 from asp_dist.training.row import PARTITION_COLUMNS, curve_schema, curve_table, row_table, schema
 
 if TYPE_CHECKING:

@@ -7,7 +7,7 @@ through an atomic rename, so a reader never sees half a base, and a crash while 
 only a stale temp file (the lock dies with its process). Works on one machine and on a shared
 filesystem with POSIX locks (local disk, NFSv4).
 
-On S3 (``cache_dir`` an asp_dist.results.location.S3Path) there are no fcntl locks: the first cell
+On S3 (``cache_dir`` an asp_dist.results.s3.S3Path) there are no fcntl locks: the first cell
 that needs a base takes a lease ``bases/.<base_key>.lease/`` (asp_dist.sweep.lease: a conditional
 PUT, renewed while it trains; it lapses if the worker dies) and stores the base with a conditional
 PUT (``If-None-Match: *``); cells asking meanwhile poll for the object and load it. Should two
@@ -31,7 +31,8 @@ from pathlib import Path
 
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.fsutil import atomic_write
-from asp_dist.results.location import AnyPath, S3Path, write_replace
+from asp_dist.results.location import AnyPath, write_replace
+from asp_dist.results.s3 import S3Path
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 

@@ -37,7 +37,7 @@ from datetime import datetime, timezone
 from typing import Any, Callable
 
 from asp_dist.errors import StorageError
-from asp_dist.results.location import S3Path, server_listing
+from asp_dist.results.s3 import S3Path, server_listing
 
 LEASE_TTL_S = 30.0
 RENEW_EVERY_S = 5.0

@@ -7,7 +7,7 @@ The files themselves (manifest, finished cells, failures) are laid out by asp_di
 this module decides what they must say for a sweep to start, continue or be reported.
 
 A sweep under ``--results s3://bucket/prefix`` is the same ledger on object storage: its directory
-is an S3Path (asp_dist.results.location), and its lock is a lease (asp_dist.sweep.lease) instead
+is an S3Path (asp_dist.results.s3), and its lock is a lease (asp_dist.sweep.lease) instead
 of an fcntl lock, which object storage does not have.
 """
 
@@ -31,7 +31,8 @@ from asp_dist.domains import DOMAINS
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.method_registry import METHODS
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, as_path, check_bucket, is_remote
+from asp_dist.results.location import AnyPath, as_path, is_remote
+from asp_dist.results.s3 import S3Path, check_bucket
 from asp_dist.spec import CellSpec
 from asp_dist.sweep.packing import MANIFEST_KEY, Packing, make_units, stored_packing
 from asp_dist.sweep.spaces import grid_hash

@@ -19,7 +19,8 @@ from typing import Any
 
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, check_bucket
+from asp_dist.results.location import AnyPath
+from asp_dist.results.s3 import S3Path, check_bucket
 from asp_dist.spec import CellSpec
 from asp_dist.sweep.ledger import (DEFAULT_CONNECT_TIMEOUT_S, _sweep_lease, lock_holder, new_manifest, read_sweep,
                                    specs_from_manifest, sweep_dir_for)

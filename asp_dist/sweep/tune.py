@@ -60,7 +60,8 @@ from ray.tune.logger import CSVLoggerCallback, JsonLoggerCallback
 
 from asp_dist.errors import DiskFull, StorageError, is_disk_full
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, as_path, write_replace
+from asp_dist.results.location import AnyPath, as_path, write_replace
+from asp_dist.results.s3 import S3Path
 from asp_dist.sweep import ledger, preflight, provenance, signals, worker_start
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing

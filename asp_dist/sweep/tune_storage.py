@@ -27,7 +27,8 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.fs as pafs
 
-from asp_dist.results.location import AnyPath, S3Path, filesystem
+from asp_dist.results.location import AnyPath
+from asp_dist.results.s3 import S3Path, filesystem
 
 TUNE_DIR = "tune"
 HELD_BYTES = 8 << 20  # a write up to this size is held and compared; a larger one (a big checkpoint) streams through
