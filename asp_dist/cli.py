@@ -1,4 +1,4 @@
-"""`asp-dist`: one cell, the theory, cell fields, sweeps (sweep, resume, status), results (stats, query, compare).
+"""`asp-dist`: one cell, the theory, cell fields, sweeps (sweep, resume, status), tuning, results (stats, query, compare).
 
 Every user mistake ends the same way: one line on stderr, `asp-dist: error: ...`, exit code 2,
 and nothing already written touched. Commands raise asp_dist.errors.SpecError (or a subclass)
@@ -14,11 +14,12 @@ import os
 import sys
 from collections.abc import Sequence
 
-from asp_dist.commands import cell, check_domain, compare, fields, power, query, replay, stats, status, sweep, theory
+from asp_dist.commands import (cell, check_domain, compare, fields, power, query, replay, stats, status, sweep, theory,
+                               tune)
 from asp_dist.errors import SpecError
 
 # In the order `asp-dist --help` lists them; sweep adds sweep and resume, power adds power and select.
-COMMANDS = (cell, theory, fields, check_domain, sweep, status, replay, stats, compare, query, power)
+COMMANDS = (cell, theory, fields, check_domain, sweep, status, tune, replay, stats, compare, query, power)
 
 
 class Parser(argparse.ArgumentParser):

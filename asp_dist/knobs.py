@@ -12,6 +12,7 @@ Names are the result row's columns, so a domain's knobs carry the domain's name 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +25,111 @@ class _Unset:
 
 
 UNSET: Any = _Unset()  # "no neutral value": the knob is part of every cell id it is set in
+
+
+RANGE_KINDS = ("log_uniform", "uniform", "int", "choice")
+METHOD_FLAGS = ("self_play", "paired", "adversarial")  # asp_dist.method_registry.Method's terms
+
+
+@dataclass(frozen=True)
+class Range:
+    """Where `asp-dist tune` may look for a knob's value: log-uniform or uniform between low and high, an
+    integer in [low, high], or one of `values`. `needs`: the terms a method must train on for the knob to
+    matter to it (Method's flags: an adversary's knobs are tuned for ASP only), empty for every method."""
+
+    kind: str
+    low: Any = None
+    high: Any = None
+    values: tuple = ()
+    needs: tuple[str, ...] = ()
+
+    def problems(self, name: str, knob_type: type) -> list[str]:
+        """What is wrong with this range for a knob `name` of `knob_type` (empty when nothing)."""
+        if self.kind not in RANGE_KINDS:
+            return [f"{name}: range kind {self.kind!r}; use one of {', '.join(RANGE_KINDS)}"]
+        out = [f"{name}: needs {n!r} is no method term ({', '.join(METHOD_FLAGS)})" for n in self.needs
+               if n not in METHOD_FLAGS]
+        if self.kind == "choice":
+            if not self.values:
+                out.append(f"{name}: an empty choice")
+            elif any(not _is_type(v, knob_type) for v in self.values):
+                out.append(f"{name}: choices {list(self.values)} are not all {knob_type.__name__}")
+            return out
+        numeric = (int,) if self.kind == "int" else (int, float)
+        if knob_type is bool or knob_type is str or (self.kind == "int" and knob_type is not int):
+            return out + [f"{name}: a {self.kind.replace('_', '-')} range is for a "
+                          f"{'integer' if self.kind == 'int' else 'number'} knob, not a {knob_type.__name__} one"]
+        if not all(isinstance(v, numeric) and not isinstance(v, bool) and math.isfinite(v) for v in (self.low, self.high)):
+            return out + [f"{name}: a {self.kind.replace('_', '-')} range needs two finite "
+                          f"{'integers' if self.kind == 'int' else 'numbers'}, got [{self.low!r}, {self.high!r}]"]
+        if not self.low < self.high:
+            out.append(f"{name}: an empty range [{self.low}, {self.high}] (low must be below high)")
+        if self.kind == "log_uniform" and self.low <= 0:
+            out.append(f"{name}: a log-uniform range must be above 0, got low = {self.low}")
+        if self.low < 0:
+            out.append(f"{name}: a range below 0 ({self.low}); knobs are >= 0")
+        return out
+
+    def contains(self, value: Any) -> bool:
+        if self.kind == "choice":
+            return value in self.values
+        return self.low <= value <= self.high
+
+    def within(self, outer: Range) -> bool:
+        """Every value of this range is one of `outer`'s."""
+        if self.kind == "choice":
+            return all(outer.contains(v) for v in self.values)
+        return outer.kind != "choice" and outer.low <= self.low and self.high <= outer.high
+
+    def describe(self) -> str:
+        if self.kind == "choice":
+            text = "one of " + " | ".join(str(v) for v in self.values)
+        else:
+            text = f"{self.kind.replace('_', '-')} [{self.low:g}, {self.high:g}]"
+        return text + (f" (methods with {' and '.join(self.needs)})" if self.needs else "")
+
+    def to_toml(self) -> dict[str, Any]:
+        return {self.kind: list(self.values) if self.kind == "choice" else [self.low, self.high]}
+
+    @classmethod
+    def from_toml(cls, name: str, value: Any, needs: tuple[str, ...] = ()) -> Range:
+        """A range as a space file writes it: ``{ log_uniform = [1e-4, 1e-2] }``, ``{ uniform = [a, b] }``,
+        ``{ int = [1, 3] }`` or ``{ choice = ["a", "b"] }`` (ValueError naming what is wrong)."""
+        if not isinstance(value, dict) or len(value) != 1 or next(iter(value)) not in RANGE_KINDS:
+            raise ValueError(f"{name}: write a range as one of "
+                             + ", ".join(f"{{ {k} = [...] }}" for k in RANGE_KINDS) + f", got {value!r}")
+        (kind, items), = value.items()
+        if not isinstance(items, list):
+            raise ValueError(f"{name}: {kind} takes a list, got {items!r}")
+        if kind == "choice":
+            return cls("choice", values=tuple(items), needs=needs)
+        if len(items) != 2:
+            raise ValueError(f"{name}: {kind} takes [low, high], got {items!r}")
+        return cls(kind, items[0], items[1], needs=needs)
+
+
+def _is_type(value: Any, knob_type: type) -> bool:
+    if knob_type is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if knob_type is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, knob_type)
+
+
+def log_uniform(low: float, high: float, *, needs: tuple[str, ...] = ()) -> Range:
+    return Range("log_uniform", low, high, needs=needs)
+
+
+def uniform(low: float, high: float, *, needs: tuple[str, ...] = ()) -> Range:
+    return Range("uniform", low, high, needs=needs)
+
+
+def integers(low: int, high: int, *, needs: tuple[str, ...] = ()) -> Range:
+    return Range("int", low, high, needs=needs)
+
+
+def choice(*values: Any, needs: tuple[str, ...] = ()) -> Range:
+    return Range("choice", values=tuple(values), needs=needs)
 
 
 @dataclass(frozen=True)
@@ -43,6 +149,9 @@ class Knob:
     optional  True (the usual): the field is None until resolution fills it from `default`. False: the
               field itself holds `default` (a knob added after rows were recorded, whose unset value is
               stored as such)
+    search    where `asp-dist tune` may look for its value (Range), or None: not tuned unless a tune space
+              declares a range for it. Only a knob that does not shape the base can have one (every
+              configuration of a tune run adopts the same base)
     """
 
     name: str
@@ -54,6 +163,7 @@ class Knob:
     shapes_base: bool = True
     bound: int | None = None
     optional: bool = True
+    search: Range | None = None
 
     def problems(self, domain: str) -> list[str]:
         """What is wrong with this declaration for `domain` (empty when nothing)."""
@@ -68,6 +178,11 @@ class Knob:
             out.append(f"knob {self.name!r} is not optional, so it needs a default")
         if not isinstance(self.doc, str) or not self.doc.strip():
             out.append(f"knob {self.name!r} needs a one-line doc")
+        if self.search is not None:
+            if self.shapes_base:
+                out.append(f"knob {self.name!r} shapes the base, so it cannot have a tuning range (every "
+                           f"configuration of a tune run adopts the same base)")
+            out += [f"knob {p}" for p in self.search.problems(repr(self.name), self.type)]
         return out
 
 

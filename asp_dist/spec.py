@@ -23,7 +23,7 @@ from typing import Any, get_type_hints
 from asp_dist.domains.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
-from asp_dist.knobs import UNSET
+from asp_dist.knobs import UNSET, Range, choice, integers, log_uniform, uniform
 from asp_dist.method_registry import METHODS, get_method
 
 __all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", "coerce_field", "field_type"]
@@ -36,8 +36,12 @@ CHOICES: dict[str, tuple[str, ...]] = {  # and every domain knob's Knob.choices 
 }
 
 
-def knob(default: Any = None, doc: str = "") -> Any:
-    return field(default=default, metadata={"doc": doc})
+def knob(default: Any = None, doc: str = "", search: Range | None = None) -> Any:
+    """A common knob: its default, its one-line doc, and where `asp-dist tune` may look for its value."""
+    return field(default=default, metadata={"doc": doc, "search": search})
+
+
+ADVERSARY = ("adversarial",)  # Range.needs: the knob matters to methods that train against an adversary
 
 
 @dataclass(frozen=True)
@@ -55,24 +59,31 @@ class _CommonKnobs:
     root_seed: int = knob(0, "Global seed; every seed of the cell is derived from (root_seed, trial, ...).")
 
     # --- the loss L = w_sp*L_sp + lambda_paired*L_p + lambda_unpaired*L_u ------------------
-    lambda_paired: float | None = knob(None, "λ0: weight of the paired (supervised) loss.")
-    lambda_unpaired: float | None = knob(None, "λ1: weight of the adversarial (unpaired) loss; ASP only.")
-    adversary_loss: str = knob("neg_bce", "Model's adversarial term: neg_bce (paper: -BCE) | non_saturating (-log D(fake)).")
+    # λ0 is tuned where another term weighs against it (alone, Adam makes a loss's scale almost irrelevant)
+    lambda_paired: float | None = knob(None, "λ0: weight of the paired (supervised) loss.",
+                                       log_uniform(0.1, 10.0, needs=("paired", "self_play")))
+    lambda_unpaired: float | None = knob(None, "λ1: weight of the adversarial (unpaired) loss; ASP only.",
+                                         log_uniform(0.01, 1.0, needs=ADVERSARY))
+    adversary_loss: str = knob("neg_bce", "Model's adversarial term: neg_bce (paper: -BCE) | non_saturating (-log D(fake)).",
+                               choice("neg_bce", "non_saturating", needs=ADVERSARY))
     unpaired_size: int | None = knob(None, "|U|: number of unpaired base outputs per convention channel.")
     unpaired_batch: int | None = knob(None, "Unpaired samples shown to each discriminator per update (default: batch_size).")
     lambda_unpaired_schedule: str | None = knob(None, "λ1 over training: constant | warmup (0 → λ1 over the first "
                                                       "lambda_schedule_frac of updates) | anneal (λ1 → 0 over that "
-                                                      "fraction). ASP only; PC and OSP resolve it to constant.")
-    lambda_schedule_frac: float | None = knob(None, "Fraction of the updates over which a λ1 warm-up or anneal runs.")
-    disc_steps: int = knob(1, "Discriminator updates per model update (each on a fresh batch of U, the same fakes).")
+                                                      "fraction). ASP only; PC and OSP resolve it to constant.",
+                                                choice("constant", "warmup", "anneal", needs=ADVERSARY))
+    lambda_schedule_frac: float | None = knob(None, "Fraction of the updates over which a λ1 warm-up or anneal runs.",
+                                              uniform(0.1, 1.0, needs=ADVERSARY))
+    disc_steps: int = knob(1, "Discriminator updates per model update (each on a fresh batch of U, the same fakes).",
+                           integers(1, 3, needs=ADVERSARY))
 
     # --- optimisation of the new agents ---------------------------------------------------
     train_steps: int | None = knob(None, "Number of training updates (batches) of the new agents.")
     batch_size: int | None = knob(None, "Self-play batch size per update (domain's unit: envs, images, games).")
-    lr: float | None = knob(None, "Adam learning rate of the new agents.")
+    lr: float | None = knob(None, "Adam learning rate of the new agents.", log_uniform(1e-4, 1e-2))
     disc_hidden: int | None = knob(None, "Hidden units of each discriminator's MLP.")
     disc_layers: int | None = knob(None, "Hidden layers of each discriminator's MLP.")
-    disc_lr: float | None = knob(None, "Adam learning rate of the discriminators.")
+    disc_lr: float | None = knob(None, "Adam learning rate of the discriminators.", log_uniform(1e-4, 1e-2, needs=ADVERSARY))
 
     # --- base model and evaluation ----------------------------------------------------------
     base_train_steps: int | None = knob(None, "Training updates of the base model.")
@@ -265,9 +276,8 @@ class _CommonKnobs:
         """The fields the base model depends on; cells agreeing on these share one base."""
         def compute(spec: CellSpec) -> dict[str, Any]:
             prefix = spec.domain + "_"
-            keep = {"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts", "base_steps_growth"}
             return {k: v for k, v in spec.identity_dict().items()
-                    if k in keep or (k.startswith(prefix) and k not in NEW_AGENTS_ONLY)}
+                    if k in BASE_COMMON or (k.startswith(prefix) and k not in NEW_AGENTS_ONLY)}
 
         return dict(self._cached("base_fields", compute))
 
@@ -376,6 +386,11 @@ _SPARSE_IDENTITY = frozenset(k.name for name in DOMAINS if not DOMAINS[name].leg
 
 FIELD_NAMES: tuple[str, ...] = tuple(f.name for f in fields(CellSpec))
 FIELD_DOCS: dict[str, str] = {f.name: f.metadata.get("doc", "") for f in fields(CellSpec)}
+# Where `asp-dist tune` may look for a knob's value (asp_dist.knobs.Range): the common knobs' and every domain's.
+SEARCH: dict[str, Range] = {**{f.name: f.metadata["search"] for f in fields(_CommonKnobs) if f.metadata.get("search")},
+                            **{k.name: k.search for k in _KNOBS if k.search is not None}}
+# The common fields a base depends on (CellSpec.base_fields); with a domain's base-shaping knobs, never tuned.
+BASE_COMMON = frozenset({"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts", "base_steps_growth"})
 _HINTS = get_type_hints(CellSpec)
 _OPTIONAL = frozenset(name for name in FIELD_NAMES if "None" in str(_HINTS[name]))
 INT64_MAX = 2**63 - 1  # integer knobs are stored as int64 in the result row

@@ -1,11 +1,12 @@
-"""`asp-dist fields`: every cell field (the common knobs and each domain's) with its default and meaning."""
+"""`asp-dist fields`: every cell field (the common knobs and each domain's) with its default and meaning, and
+the range `asp-dist tune` searches where the knob declares one."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, CellSpec
+from asp_dist.spec import FIELD_DOCS, FIELD_NAMES, SEARCH, CellSpec
 
 
 def cmd_fields(args: argparse.Namespace) -> int:
@@ -25,7 +26,8 @@ def cmd_fields(args: argparse.Namespace) -> int:
         if name in own and name not in shown:  # another domain's knob
             continue
         value = defaults.get(name, getattr(CellSpec(), name))
-        print(f"{name:26s} {value!s:>10s}  {FIELD_DOCS[name]}")
+        tuned = f" [tune: {SEARCH[name].describe()}]" if name in SEARCH else ""
+        print(f"{name:26s} {value!s:>10s}  {FIELD_DOCS[name]}{tuned}")
     return 0
 
 

@@ -11,7 +11,8 @@ from pathlib import Path
 from asp_dist.commands.common import add_results, check_data
 from asp_dist.errors import SpecError
 from asp_dist.results import store
-from asp_dist.results.location import as_path, first_answer_within, is_remote
+from asp_dist.results.location import as_path, is_remote
+from asp_dist.results.s3 import first_answer_within
 
 RAY_SOCKET_SUFFIX = 64  # len('/session_YYYY-MM-DD_HH-MM-SS_uuuuuu_<pid:7>/sockets/plasma_store')
 DASHBOARD_MODULES = ("aiohttp", "aiohttp_cors", "grpc", "opencensus", "opentelemetry", "prometheus_client", "pydantic")
@@ -38,9 +39,14 @@ def check_run_flags(args: argparse.Namespace) -> None:
         if missing:
             raise SpecError(f"--dashboard needs Ray's dashboard packages ({', '.join(missing)} missing): "
                             f"pip install 'ray[default]', or leave out --dashboard")
-    if args.ray_temp_dir is not None:
-        temp = Path(args.ray_temp_dir).expanduser()
-        if not str(args.ray_temp_dir).strip():
+    check_ray_temp_dir(args.ray_temp_dir)
+
+
+def check_ray_temp_dir(ray_temp_dir: str | None) -> None:
+    """--ray-temp-dir: a directory (or none yet) whose socket paths fit Ray's limit; refused in one line."""
+    if ray_temp_dir is not None:
+        temp = Path(ray_temp_dir).expanduser()
+        if not str(ray_temp_dir).strip():
             raise SpecError("--ray-temp-dir is empty; name a directory or leave it out")
         if temp.exists() and not temp.is_dir():
             raise SpecError(f"--ray-temp-dir {temp} exists and is not a directory")

@@ -17,6 +17,11 @@ A space file is small and readable (stdlib ``tomllib``)::
     paired = [0, 1, 2, 4, 8, 16, 32, 64]
     trial  = { first = 0, last = 9 }   # inclusive integer range
 
+    [methods.asp]                      # optional: knob values for one method's cells (over [fixed] and a
+    lr = 0.001                         #   grid's fixed; never a grid axis)
+    settings = ["tuned.toml"]          # optional: files whose [methods.*] tables apply too, e.g. the tuned.toml
+                                       #   of `asp-dist tune` (paths relative to this file; its own [methods] win)
+
     [logging]                          # optional: live trackers of a run of this space (asp_dist.tracking)
     loggers = ["tensorboard"]          # tensorboard | mlflow | wandb | json; --logger on the command line wins
     dir = "runs/trackers"              # optional; also mlflow_uri, wandb_project
@@ -40,7 +45,8 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import CellSpec, coerce_field
 
-SPACE_KEYS = {"description", "include", "fixed", "grid", "logging"}
+# [tune]: asp_dist.sweep.tune_plan; [methods.<name>] and settings: per-method knob values (a tuned.toml)
+SPACE_KEYS = {"description", "include", "fixed", "grid", "logging", "tune", "methods", "settings"}
 GRID_KEYS = {"name", "fixed", "axes"}
 LOGGING_KEYS = {"loggers", "dir", "mlflow_uri", "wandb_project"}
 # Cells one space may hold, counted before a grid is built: the paper's grid has 1470; a million resolved
@@ -116,6 +122,7 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
             raise SweepError(f"space {space}: its includes hold {len(cells)} cells, more than the {MAX_CELLS} "
                              f"a space may hold; split it into smaller spaces")
     fixed = {k: _coerce(space, k, v) for k, v in data.get("fixed", {}).items()}
+    per_method = method_settings(path, data)
     grids = data.get("grid", [])
     if not grids and not data.get("include"):
         raise SweepError(f"space {space}: needs at least one [[grid]] or an include list")
@@ -137,9 +144,42 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
         overlap = sorted(set(axes) & set(grid_fixed))
         if overlap:
             raise SweepError(f"space {label}: {', '.join(overlap)} is both an axis and fixed; keep one")
+        for method, values in per_method.items():
+            clash = sorted(set(values) & set(axes))
+            if clash:
+                raise SweepError(f"space {label}: {', '.join(clash)} is a grid axis and set for method {method} "
+                                 f"([methods] or settings); keep one")
         for combo in itertools.product(*axes.values()):
-            cells.append({**grid_fixed, **dict(zip(axes, combo))})
+            cell = {**grid_fixed, **dict(zip(axes, combo))}
+            cells.append({**cell, **per_method.get(cell.get("method", "asp"), {})})
     return cells
+
+
+def method_settings(path: Path, data: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Knob values per method: the [methods.*] tables of the files in `settings` (in order), then the space's
+    own [methods.*] (which win), each value checked as a cell field."""
+    space = path.stem
+    files = data.get("settings", [])
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        raise SweepError(f"space {space}: settings must be a list of file paths, got {files!r}")
+    tables = []
+    for name in files:
+        file = (path.parent / name) if not Path(name).is_absolute() else Path(name)
+        if not file.is_file():
+            raise SweepError(f"space {space}: its settings file {name} does not exist (looked at {file})")
+        try:
+            loaded = tomllib.loads(file.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise SweepError(f"space {space}: invalid TOML in its settings file {file}: {e}") from None
+        tables.append((f"{space} (settings {name})", loaded.get("methods", {})))
+    tables.append((space, data.get("methods", {})))
+    merged: dict[str, dict[str, Any]] = {}
+    for label, table in tables:
+        if not isinstance(table, dict) or not all(isinstance(v, dict) for v in table.values()):
+            raise SweepError(f"space {label}: [methods] holds one table per method ([methods.asp] ...), got {table!r}")
+        for method, values in table.items():
+            merged.setdefault(method, {}).update({k: _coerce(label, k, v) for k, v in values.items()})
+    return merged
 
 
 def expand(name_or_path: str) -> list[CellSpec]:

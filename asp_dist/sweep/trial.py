@@ -26,7 +26,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import ray
 from ray import tune
@@ -34,7 +34,8 @@ from ray import tune
 from asp_dist.data.mnist import MNISTError
 from asp_dist.errors import SpecError, StorageError, is_disk_full
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, S3Path, as_path
+from asp_dist.results.location import AnyPath, as_path
+from asp_dist.results.s3 import S3Path
 from asp_dist.spec import FIELD_NAMES, CellSpec
 from asp_dist.sweep import worker_start
 from asp_dist.sweep.packing import Unit
@@ -101,8 +102,10 @@ def train_cell(config: dict[str, Any]) -> None:
         tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or unit["sweep_dir"]})
 
 
-def train_unit(unit: dict[str, Any]) -> None:
-    """Train one unit's members without a row and write them (the module docstring's steps)."""
+def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None) -> None:
+    """Train one unit's members without a row and write them (the module docstring's steps). `report`: what
+    the unit's results and checkpoints go through (tune.report; asp-dist tune adds its objective to each)."""
+    report = report or tune.report
     from asp_dist.sweep.base_cache import get_base
     from asp_dist.training import engines
     from asp_dist.training.pipeline import run_unit, upgrade_checkpoint
@@ -112,7 +115,7 @@ def train_unit(unit: dict[str, Any]) -> None:
     sweep_dir, pack_id = as_path(unit["sweep_dir"]), unit["pack_id"]
     todo = {s.cell_id for s in specs if not store.is_done(sweep_dir, s.domain, s.method, s.cell_id)}
     if not todo:
-        tune.report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
+        report({"cell_done": 1, "skipped": 1})  # finished before Tune's state caught up
         return
     failures: dict[str, str] = {}
     bases: dict[str, Any] = {}
@@ -133,7 +136,7 @@ def train_unit(unit: dict[str, Any]) -> None:
         restore = upgrade_checkpoint(restore)
         if (restore.get("pack_id"), restore.get("cell_ids")) != (pack_id, [s.cell_id for s in live]):
             restore = None  # another composition (a base was rejected or accepted since): start over
-    save = _checkpointer(sweep_dir, unit["name"])
+    save = _checkpointer(sweep_dir, unit["name"], report)
     results = []
     if live:
         trainer = engines.lone_trainer(live[0]) if pack_id is None else engines.pack_trainer(live[0])
@@ -168,7 +171,7 @@ def train_unit(unit: dict[str, Any]) -> None:
             store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
             if feed is not None:
                 feed.finish(spec.cell_id, {}, 0, failures[spec.cell_id])
-    tune.report(final_report(unit, finals, written, failures))
+    report(final_report(unit, finals, written, failures))
 
 
 def final_report(unit: dict[str, Any], finals: dict[str, dict[str, float]], written: int,
@@ -227,8 +230,8 @@ def _restored_state() -> dict | None:
     return None
 
 
-def _checkpointer(sweep_dir: AnyPath, name: str):
-    """save(state): one checkpoint of the trial through tune.report."""
+def _checkpointer(sweep_dir: AnyPath, name: str, report: Callable[..., None]):
+    """save(state): one checkpoint of the trial through `report` (tune.report)."""
     # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
     # under the Ray temp dir (node-local scratch, pruned with its session).
     import torch
@@ -244,7 +247,6 @@ def _checkpointer(sweep_dir: AnyPath, name: str):
             part = Path(d) / ".state.pt.part"
             torch.save(state, part)
             os.replace(part, Path(d) / "state.pt")
-            tune.report({"cell_done": 0, "step": state["trainer"]["step"]},
-                        checkpoint=tune.Checkpoint.from_directory(d))
+            report({"cell_done": 0, "step": state["trainer"]["step"]}, checkpoint=tune.Checkpoint.from_directory(d))
 
     return save

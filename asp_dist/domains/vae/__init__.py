@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 from asp_dist.data.mnist import PIXELS
 from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
-from asp_dist.knobs import Knob
+from asp_dist.knobs import Knob, choice
 
 if TYPE_CHECKING:
     from asp_dist.spec import CellSpec
@@ -57,10 +57,10 @@ class VAEDomain(GameDomain):
              'over pixels).', choices=('bce', 'mse'), neutral='bce', optional=False),
         Knob('vae_adversary_input', str, 'mu',
              'What the adversary compares: mu (mean encodings) | z (sampled codes).', choices=('mu', 'z'),
-             neutral='mu', shapes_base=False, optional=False),
+             neutral='mu', shapes_base=False, optional=False, search=choice('mu', 'z', needs=('adversarial',))),
         Knob('vae_paired_reduction', str, 'sum',
              'Paired MSE summed over latent dims and pixels (sum) or averaged (mean).', choices=('sum', 'mean'),
-             neutral='sum', shapes_base=False, optional=False),
+             neutral='sum', shapes_base=False, optional=False, search=choice('sum', 'mean', needs=('paired',))),
     )
     legacy_identity = True  # knobs recorded as CellSpec fields before domains were plugins
     protocol_defaults = dict(lambda_unpaired=1.0)  # before the reproduction study changed them

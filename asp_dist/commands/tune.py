@@ -1,0 +1,68 @@
+"""`asp-dist tune`: every method of a tune space searched on one budget with a Ray Tune search algorithm
+(asp_dist.sweep.tuning); the plan is read and checked before Ray is imported or anything is written."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from asp_dist.commands.common import add_results, check_data
+from asp_dist.errors import SpecError
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    import dataclasses
+    import signal
+
+    from asp_dist.commands.sweep import check_ray_temp_dir
+    from asp_dist.sweep import signals
+    from asp_dist.sweep.preflight import check_run_options
+    from asp_dist.sweep.tune_plan import SEARCHES, TunePlan
+
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every, 10.0)
+    check_ray_temp_dir(args.ray_temp_dir)
+    if args.search is not None and args.search not in SEARCHES:
+        raise SpecError(f"--search must be one of {', '.join(SEARCHES)}, got {args.search!r}")
+    plan = TunePlan.from_space(args.space, args.name)
+    overrides = {k: v for k, v in (("budget", args.budget), ("search", args.search), ("seed", args.seed))
+                 if v is not None}
+    if overrides:
+        if overrides.get("budget", 1) < 1:
+            raise SpecError(f"--budget is the number of configurations per method, an integer >= 1; "
+                            f"got {overrides['budget']}")
+        if overrides.get("seed", 0) < 0:
+            raise SpecError(f"--seed must be >= 0, got {overrides['seed']}")
+        plan.settings = dataclasses.replace(plan.settings, **overrides)
+    check_data([c for s in plan.searches.values() for c in s.cells])
+    with signals.sigterm_as_interrupt():
+        try:
+            from asp_dist.sweep.tuning import run_tune
+
+            result = run_tune(plan, results=args.results, workers=args.workers, ray_temp_dir=args.ray_temp_dir,
+                              checkpoint_every_s=args.checkpoint_every, max_failures=args.max_failures)
+        except KeyboardInterrupt:
+            signum = signals.interrupted_by or signal.SIGINT
+            print(f"asp-dist: interrupted ({signal.Signals(signum).name}); finished cells and configurations are "
+                  f"kept: run the same command again to continue", file=sys.stderr)
+            return 128 + signum
+    return 0 if len(result.best) == len(plan.searches) else 1
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("tune", help="tune every method of a tune space on the same budget (Ray Tune search)",
+                       description="Search each method's knobs ([tune] of the space: budget, search, seed, metric, "
+                                   "ranges) on the space's calibration cells, the same number of configurations "
+                                   "for every method. Resumable: run the same command again after a stop. Writes "
+                                   "the cells' rows, configurations.parquet and tuned.toml under DIR/NAME.")
+    p.add_argument("space", help="a tune space: tune_spaces/<name>.toml or a path")
+    p.add_argument("--name", help="the tune run's name (default: the space's)")
+    add_results(p)
+    p.add_argument("--workers", type=int, default=2, help="configurations trained at once, 1 CPU each (default 2)")
+    p.add_argument("--budget", type=int, help="configurations per method (default: the space's [tune] budget)")
+    p.add_argument("--search", help="tpe | random (default: the space's)")
+    p.add_argument("--seed", type=int, help="the searcher's seed (default: the space's)")
+    p.add_argument("--ray-temp-dir", metavar="DIR", help="the embedded Ray's temp dir")
+    p.add_argument("--max-failures", type=int, default=2, help="retries of a crashed configuration (default 2)")
+    p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="S",
+                   help="seconds between a configuration's checkpoints (default 30)")
+    p.set_defaults(func=cmd_tune)

@@ -1,0 +1,291 @@
+"""`asp-dist tune`: each method of a tune space searched with a Ray Tune search algorithm, on one budget.
+
+For every method of the plan (asp_dist.sweep.tune_plan), in the space's order, one Tune experiment of
+`budget` trials. A trial is one configuration (a value per searched knob): it trains the method's
+calibration cells with those values — as one pack where the domain packs cells in sweeps (particles,
+levers), else cell after cell — through the sweep's own unit function (asp_dist.sweep.trial.train_unit:
+shared bases, checkpoints, rows and curves in the store, failures recorded), then reports its objective,
+the median of the domain's metric over its cells (the rows in the store are the truth it is read from).
+
+The search: Optuna's TPE (ray.tune.search.optuna.OptunaSearch, seeded) by default, Tune's random search
+(BasicVariantGenerator, seeded) as the control. TPE is asked in batches of `workers` configurations and told
+their results together (ConcurrencyLimiter with batch=True), so what it suggests does not depend on which
+configuration happens to finish first: a tune run with a seed is reproducible on any number of CPUs of
+the same count.
+
+Resumable like a sweep: the lock is the sweep's; a killed run's experiment is restored (Tuner.restore: the
+searcher's state, the finished configurations, the running ones from their checkpoints), finished cells are
+never trained again (their rows are there) and finished configurations never evaluated again. At the end:
+`configurations.parquet` (every configuration tried: method, index, knob values, objective, its cells) and
+`tuned.toml` (each method's best configuration, as a space's [methods.<name>] settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import statistics
+import sys
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+import pyarrow as pa
+from ray import tune
+
+from asp_dist.errors import SweepError
+from asp_dist.hashing import stable_hash
+from asp_dist.knobs import Range
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath, as_path, parquet_bytes, write_replace
+from asp_dist.spec import CellSpec
+from asp_dist.sweep import ledger, preflight, signals
+from asp_dist.sweep.ray_host import ray_session
+from asp_dist.sweep.tune_plan import MethodSearch, TunePlan
+from asp_dist.sweep.tune import _tune_result_logs
+from asp_dist.sweep.tune_storage import tune_storage
+
+log = logging.getLogger(__name__)
+
+PLAN_FILE = "tune-plan.json"          # in the run's directory: what a resumed run must match
+CONFIGURATIONS = "configurations.parquet"
+TUNED = "tuned.toml"
+OBJECTIVE = "objective"
+
+
+@dataclass
+class TuneResult:
+    name: str
+    sweep_dir: AnyPath
+    best: dict[str, dict[str, Any]]     # method -> {"values": ..., "objective": ..., "index": ...}
+    configurations: int
+
+
+# ---- a trial: one configuration ------------------------------------------------------------------------------
+def configuration_units(search_cells: list[dict], values: dict[str, Any], method: str, sweep_dir: str,
+                        sweep_id: str, checkpoint_every_s: float) -> list[dict[str, Any]]:
+    """The units (asp_dist.sweep.trial) a configuration trains: one pack of all its cells where the domain's
+    packed trainer takes them in sweeps, else one unit per cell. Names and pack ids follow from the cells, so
+    a restarted trial finds its checkpoint."""
+    from asp_dist.training import engines
+
+    specs = [CellSpec.from_dict(d).replace(**values).resolved() for d in search_cells]
+    ids = [s.cell_id for s in specs]
+    common = {"sweep_dir": sweep_dir, "sweep_id": sweep_id, "checkpoint_every_s": checkpoint_every_s}
+    if all(engines.sweep_packs(s) for s in specs) and len({engines.pack_key(s) for s in specs}) == 1:
+        pack_id = f"{method}-{stable_hash(ids)[:10]}"
+        return [{"name": pack_id, "pack_id": pack_id, "specs": [s.to_dict() for s in specs], "cell_ids": ids,
+                 **common}]
+    return [{"name": s.cell_id, "pack_id": None, "specs": [s.to_dict()], "cell_ids": [s.cell_id], **common}
+            for s in specs]
+
+
+def objective_of(sweep_dir: AnyPath, units: list[dict[str, Any]], column: str) -> tuple[float, int]:
+    """The median of `column` over the units' cells that have a verified row (NaN when none has), and how many
+    have one. Direction-free: the searcher is told the direction (mode)."""
+    from asp_dist.results.location import parquet_file
+
+    values = []
+    for unit in units:
+        for cell_id, spec in zip(unit["cell_ids"], unit["specs"]):
+            if not store.is_done(sweep_dir, spec["domain"], spec["method"], cell_id):
+                continue
+            with parquet_file(store.cell_path(sweep_dir, spec["domain"], spec["method"], cell_id)) as f:
+                value = f.read(columns=[column]).column(0)[0].as_py()
+            if value is not None and math.isfinite(value):
+                values.append(float(value))
+    return (statistics.median(values) if values else float("nan")), len(values)
+
+
+def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
+    """The trainable: train one configuration's cells, then report its objective."""
+    import torch
+
+    from asp_dist.sweep.trial import train_unit
+
+    torch.set_num_threads(1)
+    values = {k: config[k] for k in plan["knobs"]}
+    units = configuration_units(plan["cells"], values, plan["method"], plan["sweep_dir"], plan["sweep_id"],
+                                plan["checkpoint_every_s"])
+
+    def report(metrics: dict[str, Any], checkpoint=None) -> None:
+        # Every result carries the objective (Tune's searchers read it from each); NaN until it is known.
+        tune.report({**metrics, OBJECTIVE: float("nan")}, checkpoint=checkpoint)
+
+    for unit in units:
+        train_unit(unit, report)
+    cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
+    objective, done = objective_of(as_path(plan["sweep_dir"]), units, plan["column"])
+    tune.report({OBJECTIVE: objective, "cells_done": done, "cells_failed": len(cell_ids) - done,
+                 "cell_ids": ",".join(cell_ids)})
+
+
+# ---- the driver --------------------------------------------------------------------------------------------
+def search_space(ranges: dict[str, Range]) -> dict[str, Any]:
+    """Tune's search space of a method's ranges."""
+    space = {}
+    for name, r in ranges.items():
+        if r.kind == "log_uniform":
+            space[name] = tune.loguniform(r.low, r.high)
+        elif r.kind == "uniform":
+            space[name] = tune.uniform(r.low, r.high)
+        elif r.kind == "int":
+            space[name] = tune.randint(r.low, r.high + 1)
+        else:
+            space[name] = tune.choice(list(r.values))
+    return space
+
+
+def _searcher(plan: TunePlan, method_index: int, workers: int):
+    """The search algorithm of one method, seeded from the plan's seed and the method's place."""
+    seed = plan.settings.seed + 1009 * method_index
+    mode = "max" if plan.higher_is_better else "min"
+    if plan.settings.search == "random":
+        from ray.tune.search import BasicVariantGenerator
+
+        return BasicVariantGenerator(random_state=seed, max_concurrent=workers), mode
+    import optuna
+    from ray.tune.search import ConcurrencyLimiter
+    from ray.tune.search.optuna import OptunaSearch
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    sampler = optuna.samplers.TPESampler(seed=seed)
+    return ConcurrencyLimiter(OptunaSearch(sampler=sampler, metric=OBJECTIVE, mode=mode), max_concurrent=workers,
+                              batch=True), mode
+
+
+def _experiment_name(method: str) -> str:
+    return f"tune-{method}"
+
+
+def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath, workers: int,
+           checkpoint_every_s: float, max_failures: int) -> tune.Tuner:
+    storage_path, storage_fs = tune_storage(sweep_dir)
+    experiment = _experiment_name(search.method)
+    info = {"method": search.method, "knobs": sorted(search.ranges), "cells": [c.to_dict() for c in search.cells],
+            "sweep_dir": str(sweep_dir), "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s,
+            "column": plan.objective_column, "higher_is_better": plan.higher_is_better}
+    trainable = tune.with_resources(tune.with_parameters(train_configuration, plan=info), {"cpu": 1})
+    path = f"{storage_path}/{experiment}"
+    if tune.Tuner.can_restore(path, storage_filesystem=storage_fs):
+        return tune.Tuner.restore(path, trainable=trainable, resume_unfinished=True, resume_errored=True,
+                                  storage_filesystem=storage_fs)
+    searcher, mode = _searcher(plan, index, workers)
+    return tune.Tuner(
+        trainable, param_space=search_space(search.ranges),
+        tune_config=tune.TuneConfig(search_alg=searcher, metric=OBJECTIVE, mode=mode, num_samples=plan.settings.budget,
+                                    reuse_actors=True),  # the searcher limits concurrency to `workers`
+        run_config=tune.RunConfig(name=experiment, storage_path=storage_path, storage_filesystem=storage_fs,
+                                  verbose=0, failure_config=tune.FailureConfig(max_failures=max_failures),
+                                  checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
+                                  callbacks=_tune_result_logs()))  # result.json: what configurations_table reads
+
+
+def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
+    """A tune run's directory holds the plan it was started with; another plan there is refused."""
+    record = sweep_dir / PLAN_FILE
+    fingerprint = plan.fingerprint()
+    if record.exists():
+        stored = json.loads(record.read_text())
+        if stored.get("fingerprint") != fingerprint:
+            raise SweepError(f"tune run {plan.name} was started with another plan (space {stored.get('space')}, "
+                             f"settings {stored.get('settings')}); give this one another --name")
+        return
+    write_replace(record, json.dumps({"name": plan.name, "space": plan.space, "domain": plan.domain,
+                                      "fingerprint": fingerprint, "settings": vars(plan.settings),
+                                      "ranges": {m: {k: r.to_toml() for k, r in s.ranges.items()}
+                                                 for m, s in plan.searches.items()}}, indent=1))
+
+
+def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
+    """Every configuration tried, read back from each method's Tune experiment and scored from the rows."""
+    import pandas as pd
+    from ray.tune import ExperimentAnalysis
+
+    storage_path, storage_fs = tune_storage(sweep_dir)
+    records = []
+    for method, search in plan.searches.items():
+        analysis = ExperimentAnalysis(f"{storage_path}/{_experiment_name(method)}", storage_filesystem=storage_fs)
+        trials = sorted(analysis.trials, key=_trial_number)
+        for index, trial in enumerate(trials):
+            values = {k: trial.config[k] for k in search.ranges}
+            units = configuration_units([c.to_dict() for c in search.cells], values, method, str(sweep_dir),
+                                        plan.name, 30.0)
+            cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
+            objective, done = objective_of(sweep_dir, units, plan.objective_column)
+            records.append({"method": method, "configuration": index, "trial_id": trial.trial_id,
+                            **{f"knob_{k}": v for k, v in values.items()}, OBJECTIVE: objective,
+                            "cells": len(cell_ids), "cells_done": done, "cell_ids": ",".join(cell_ids)})
+    return pd.DataFrame.from_records(records)
+
+
+def _trial_number(trial) -> int:
+    """The order Tune created a trial in (its experiment tag starts with it: "3_lr=0.002"); trial ids are random."""
+    return int(str(trial.experiment_tag).split("_", 1)[0])
+
+
+def best_configurations(plan: TunePlan, table) -> dict[str, dict[str, Any]]:
+    best = {}
+    for method, search in plan.searches.items():
+        rows = table[(table["method"] == method) & table[OBJECTIVE].notna()]
+        if rows.empty:
+            continue
+        row = rows.loc[rows[OBJECTIVE].idxmax() if plan.higher_is_better else rows[OBJECTIVE].idxmin()]
+        best[method] = {"index": int(row["configuration"]), OBJECTIVE: float(row[OBJECTIVE]),
+                        "values": {k: _plain(row[f"knob_{k}"]) for k in search.ranges}}
+    return best
+
+
+def _plain(value: Any) -> Any:
+    """A pandas/numpy scalar as the Python value a space file writes."""
+    return value.item() if hasattr(value, "item") else value
+
+
+def tuned_toml(plan: TunePlan, best: dict[str, dict[str, Any]]) -> str:
+    """The best configuration of each method as a space's [methods.<name>] settings."""
+    lines = [f"# asp-dist tune {plan.space} --name {plan.name}: each method's best configuration by its own objective",
+             f"# (median {plan.objective_column} over its calibration cells; search {plan.settings.search}, "
+             f"budget {plan.settings.budget}, seed {plan.settings.seed}). Use it as a space's settings:",
+             f'#   settings = ["{plan.name}/tuned.toml"]', ""]
+    for method, b in best.items():
+        lines.append(f"[methods.{method}]  # configuration {b['index']}, objective {b[OBJECTIVE]:.6g}")
+        for key, value in b["values"].items():
+            lines.append(f"{key} = {json.dumps(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: str | None = None,
+             checkpoint_every_s: float = 30.0, max_failures: int = 2, stream: TextIO | None = None) -> TuneResult:
+    """Run (or continue) the tune run of `plan`; see the module docstring."""
+    from asp_dist.sweep.tune import _fit
+
+    logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)
+    stream = stream or sys.stderr
+    sweep_dir = ledger.sweep_dir_for(results, plan.name)
+    os.environ.setdefault("TUNE_DISABLE_STRICT_METRIC_CHECKING", "1")  # a checkpoint's result has no objective yet
+    with signals.sigterm_as_interrupt():
+        if not (sweep_dir / PLAN_FILE).exists():  # a new tune run: the directory is free and writable
+            preflight.check_sweep_dir(sweep_dir)
+        with ledger.sweep_lock(sweep_dir):
+            _check_plan_record(sweep_dir, plan)
+            for method, search in plan.searches.items():
+                stream.write(f"tune {plan.name}: {method}: {plan.settings.budget} configurations of "
+                             f"{', '.join(sorted(search.ranges))} over {len(search.cells)} cells each "
+                             f"({plan.settings.search}, seed {plan.settings.seed})\n")
+            with ray_session(workers, None, ray_temp_dir, stream=stream):
+                for index, (method, search) in enumerate(plan.searches.items()):
+                    _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures))
+                    stream.write(f"tune {plan.name}: {method} done\n")
+            table = configurations_table(plan, sweep_dir)
+            write_replace(sweep_dir / CONFIGURATIONS, parquet_bytes(pa.Table.from_pandas(table, preserve_index=False)))
+            best = best_configurations(plan, table)
+            write_replace(sweep_dir / TUNED, tuned_toml(plan, best))
+    for method, b in best.items():
+        stream.write(f"tune {plan.name}: {method}: best configuration {b['index']} "
+                     f"({plan.objective_column} median {b[OBJECTIVE]:.4g}): "
+                     + ", ".join(f"{k}={v}" for k, v in b["values"].items()) + "\n")
+    stream.write(f"tune {plan.name}: every configuration in {sweep_dir / CONFIGURATIONS}, the best in "
+                 f"{sweep_dir / TUNED}; the cells' rows: asp-dist query {plan.name} --results {results}\n")
+    return TuneResult(plan.name, sweep_dir, best, len(table))
