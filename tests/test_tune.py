@@ -3,6 +3,7 @@ per-method settings in spaces, the searcher's determinism, and a real run killed
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -79,6 +80,7 @@ pc = ["lr", "batch_size"]
     ("[tune.knobs]\npc = ['disc_width']", "names disc_width, which has no range"),
     ("[tune.knobs]\nvae = ['lr']", "names method(s) vae that its grid does not have"),
     ("budgets = 3", "unknown key(s) budgets in [tune]"),
+    ("from_defaults = 1", "from_defaults must be true or false"),
 ])
 def test_bad_tune_tables_are_refused_in_one_line(tmp_path, table, message):
     with pytest.raises(SweepError, match=re.escape(message)):
@@ -149,11 +151,13 @@ def test_the_tpe_searcher_suggests_the_same_configurations_for_the_same_seed_and
     configurations, whatever order the results come back in."""
     from asp_dist.sweep.tuning import _searcher, search_space
 
-    plan = TunePlan.build("t", "t", expand("tune-smoke"), {"budget": 6, "seed": 7}, "t")
+    plan = TunePlan.build("t", "t", expand("tune-smoke"), {
+        "budget": 6, "seed": 7, "ranges": {"lr": {"log_uniform": [1e-3, 1e-1]}, "disc_steps": {"int": [1, 2]}},
+        "knobs": {"asp": ["lr", "lambda_unpaired", "disc_steps", "adversary_loss"]}}, "t")
     ranges = plan.searches["asp"].ranges
 
     def suggestions(order):
-        searcher, mode = _searcher(plan, 2, workers=2)
+        searcher, mode = _searcher(plan, 2, workers=2, search=plan.searches["asp"])
         searcher.set_search_properties("objective", mode, search_space(ranges))
         seen = []
         for batch in range(3):
@@ -167,6 +171,11 @@ def test_the_tpe_searcher_suggests_the_same_configurations_for_the_same_seed_and
 
     first = suggestions([0, 1])
     assert first == suggestions([1, 0]) and len(set(first)) == 6
+    # from_defaults (the default): configuration 0 is the method's own values
+    assert json.loads(first[0]) == plan.searches["asp"].defaults() == {
+        k: getattr(plan.searches["asp"].cells[0], k) for k in ranges}
+    plan.settings = dataclasses.replace(plan.settings, from_defaults=False)
+    assert suggestions([0, 1])[0] != first[0]
 
 
 # ---- a real run, killed and resumed -------------------------------------------------------------------------

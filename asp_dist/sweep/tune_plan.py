@@ -9,6 +9,7 @@ and a [tune] table::
     search = "tpe"           # tpe (Optuna's TPE, ray.tune.search.optuna) | random (Tune's random search)
     seed = 0                 # the searcher's seed: a tune run is reproducible
     metric = "mixed"         # the domain's metric the objective is the median of (its direction is the domain's)
+    from_defaults = true     # configuration 0 of each method is its cells' own values (where inside the ranges)
     [tune.ranges]            # optional: narrow, widen or add a knob's range (asp_dist.knobs.Range)
     lr = { log_uniform = [3e-4, 3e-3] }
     [tune.knobs]             # optional: the knobs searched for a method (default: every knob with a range
@@ -34,7 +35,7 @@ from asp_dist.spec import BASE_COMMON, FIELD_NAMES, NEW_AGENTS_ONLY, SEARCH, Cel
 from asp_dist.sweep.spaces import expand, space_file
 
 SEARCHES = ("tpe", "random")
-TUNE_KEYS = {"budget", "search", "seed", "metric", "ranges", "knobs"}
+TUNE_KEYS = {"budget", "search", "seed", "metric", "from_defaults", "ranges", "knobs"}
 CALIBRATION_TRIALS = range(100, 1000)  # 1000 and up: confirmatory trials, never tuned on
 
 
@@ -44,6 +45,7 @@ class TuneSettings:
     search: str = "tpe"
     seed: int = 0
     metric: str = "mixed"
+    from_defaults: bool = True
 
 
 @dataclass
@@ -57,6 +59,12 @@ class MethodSearch:
     def configuration(self, values: dict[str, Any]) -> list[CellSpec]:
         """The method's cells with `values` (one per searched knob), resolved."""
         return [cell.replace(**values).resolved() for cell in self.cells]
+
+    def defaults(self) -> dict[str, Any] | None:
+        """The searched knobs' values in the method's cells (the configuration it runs untuned), or None where
+        one lies outside its range."""
+        values = {k: getattr(self.cells[0], k) for k in self.ranges}
+        return values if all(self.ranges[k].contains(v) for k, v in values.items()) else None
 
 
 @dataclass
@@ -124,7 +132,12 @@ class TunePlan:
         searches = {}
         for method in methods:
             own = _method_ranges(method, ranges, chosen.get(method), label)
-            searches[method] = MethodSearch(method, own, [c for c in cells if c.method == method])
+            mine = [c for c in cells if c.method == method]
+            varied = sorted(k for k in own if len({repr(getattr(c, k)) for c in mine}) > 1)
+            if varied:
+                raise SweepError(f"{label}: {', '.join(varied)} varies across {method}'s cells (a grid axis) and is "
+                                 f"searched too; keep one")
+            searches[method] = MethodSearch(method, own, mine)
         return cls(name, space, domain.name, settings, searches, domain.metrics[settings.metric].higher_is_better,
                    text)
 
@@ -137,6 +150,9 @@ def _settings(table: dict[str, Any], label: str) -> TuneSettings:
     defaults = TuneSettings()
     budget, search = table.get("budget", defaults.budget), table.get("search", defaults.search)
     seed, metric = table.get("seed", defaults.seed), table.get("metric", defaults.metric)
+    from_defaults = table.get("from_defaults", defaults.from_defaults)
+    if not isinstance(from_defaults, bool):
+        raise SweepError(f"{label}: from_defaults must be true or false, got {from_defaults!r}")
     if not isinstance(budget, int) or isinstance(budget, bool) or budget < 1:
         raise SweepError(f"{label}: budget is the number of configurations per method, an integer >= 1; got {budget!r}")
     if search not in SEARCHES:
@@ -145,7 +161,7 @@ def _settings(table: dict[str, Any], label: str) -> TuneSettings:
         raise SweepError(f"{label}: seed must be an integer >= 0, got {seed!r}")
     if not isinstance(metric, str):
         raise SweepError(f"{label}: metric must be a metric's name, got {metric!r}")
-    return TuneSettings(budget, search, seed, metric)
+    return TuneSettings(budget, search, seed, metric, from_defaults)
 
 
 def _ranges(declared: Any, sample: CellSpec, label: str) -> dict[str, Range]:

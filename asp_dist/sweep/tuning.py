@@ -137,22 +137,25 @@ def search_space(ranges: dict[str, Range]) -> dict[str, Any]:
     return space
 
 
-def _searcher(plan: TunePlan, method_index: int, workers: int):
-    """The search algorithm of one method, seeded from the plan's seed and the method's place."""
+def _searcher(plan: TunePlan, method_index: int, workers: int, search: MethodSearch | None = None):
+    """The search algorithm of one method, seeded from the plan's seed and the method's place; with
+    from_defaults, its first configuration is the method's own values (`search`'s cells)."""
     seed = plan.settings.seed + 1009 * method_index
     mode = "max" if plan.higher_is_better else "min"
+    start = search.defaults() if plan.settings.from_defaults and search is not None else None
+    points = [start] if start is not None else None
     if plan.settings.search == "random":
         from ray.tune.search import BasicVariantGenerator
 
-        return BasicVariantGenerator(random_state=seed, max_concurrent=workers), mode
+        return BasicVariantGenerator(points_to_evaluate=points, random_state=seed, max_concurrent=workers), mode
     import optuna
     from ray.tune.search import ConcurrencyLimiter
     from ray.tune.search.optuna import OptunaSearch
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     sampler = optuna.samplers.TPESampler(seed=seed)
-    return ConcurrencyLimiter(OptunaSearch(sampler=sampler, metric=OBJECTIVE, mode=mode), max_concurrent=workers,
-                              batch=True), mode
+    return ConcurrencyLimiter(OptunaSearch(points_to_evaluate=points, sampler=sampler, metric=OBJECTIVE, mode=mode),
+                              max_concurrent=workers, batch=True), mode
 
 
 def _experiment_name(method: str) -> str:
@@ -171,7 +174,7 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
     if tune.Tuner.can_restore(path, storage_filesystem=storage_fs):
         return tune.Tuner.restore(path, trainable=trainable, resume_unfinished=True, resume_errored=True,
                                   storage_filesystem=storage_fs)
-    searcher, mode = _searcher(plan, index, workers)
+    searcher, mode = _searcher(plan, index, workers, search)
     return tune.Tuner(
         trainable, param_space=search_space(search.ranges),
         tune_config=tune.TuneConfig(search_alg=searcher, metric=OBJECTIVE, mode=mode, num_samples=plan.settings.budget,
@@ -271,9 +274,11 @@ def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: st
         with ledger.sweep_lock(sweep_dir):
             _check_plan_record(sweep_dir, plan)
             for method, search in plan.searches.items():
+                start = ("its defaults first" if search.defaults() is not None else
+                         "its defaults lie outside the ranges: all searched") if plan.settings.from_defaults else ""
                 stream.write(f"tune {plan.name}: {method}: {plan.settings.budget} configurations of "
                              f"{', '.join(sorted(search.ranges))} over {len(search.cells)} cells each "
-                             f"({plan.settings.search}, seed {plan.settings.seed})\n")
+                             f"({plan.settings.search}, seed {plan.settings.seed}{', ' + start if start else ''})\n")
             with ray_session(workers, None, ray_temp_dir, stream=stream):
                 for index, (method, search) in enumerate(plan.searches.items()):
                     _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures))
