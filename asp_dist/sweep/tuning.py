@@ -122,6 +122,28 @@ def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
 
 
 # ---- the driver --------------------------------------------------------------------------------------------
+class TuneProgress(tune.Callback):
+    """One line on stderr per finished configuration: the method's count against its budget, the objective,
+    the best so far. Tune pickles its callbacks with the experiment: only the numbers are pickled."""
+
+    def __init__(self, name: str, method: str, budget: int, higher_is_better: bool):
+        self.name, self.method, self.budget, self.higher = name, method, budget, higher_is_better
+        self.done, self.best = 0, None
+
+    def __reduce__(self):
+        return (TuneProgress, (self.name, self.method, self.budget, self.higher))
+
+    def on_trial_complete(self, iteration, trials, trial, **info):
+        objective = (trial.last_result or {}).get(OBJECTIVE, float("nan"))
+        self.done = sum(t.status == "TERMINATED" or t is trial for t in trials)  # this one's status is set after
+        if objective == objective and (self.best is None or (objective > self.best) == self.higher):
+            self.best = objective
+        best = "none yet" if self.best is None else f"{self.best:.4g}"
+        print(f"tune {self.name}: {self.method} {self.done}/{self.budget} configurations, last objective "
+              f"{objective:.4g}, best {best}", file=sys.stderr, flush=True)
+
+
+
 def search_space(ranges: dict[str, Range]) -> dict[str, Any]:
     """Tune's search space of a method's ranges."""
     space = {}
@@ -182,7 +204,9 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
         run_config=tune.RunConfig(name=experiment, storage_path=storage_path, storage_filesystem=storage_fs,
                                   verbose=0, failure_config=tune.FailureConfig(max_failures=max_failures),
                                   checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-                                  callbacks=_tune_result_logs()))  # result.json: what configurations_table reads
+                                  # result.json: what configurations_table reads
+                                  callbacks=[TuneProgress(plan.name, search.method, plan.settings.budget,
+                                                          plan.higher_is_better), *_tune_result_logs()]))
 
 
 def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
