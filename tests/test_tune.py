@@ -11,6 +11,7 @@ import shutil
 import signal
 import tomllib
 
+import pandas as pd
 import pytest
 from harness import cli, kill_group, parquet_files, read_log, space, start_cli, wait_for, wait_until_gone
 
@@ -178,6 +179,24 @@ def test_the_tpe_searcher_suggests_the_same_configurations_for_the_same_seed_and
     assert suggestions([0, 1])[0] != first[0]
 
 
+# ---- the report's tuning section -----------------------------------------------------------------------------
+def test_the_tuning_tables_name_each_methods_best_and_the_spread_of_its_search(tmp_path):
+    from asp_dist.analysis.tuning import best_table, plot_tuning, spread_table
+
+    configs = pd.DataFrame({
+        "run": "r", "method": ["pc"] * 4 + ["asp"] * 4, "configuration": [0, 1, 2, 3] * 2,
+        "knob_lr": [1e-3, 2e-3, 3e-3, 4e-3] * 2, "objective": [0.5, 0.7, 0.7, float("nan"), 2.0, 1.0, 3.0, 1.5],
+        "higher_is_better": False})
+    best = best_table(configs).set_index("method")
+    assert best.loc["pc", "best_configuration"] == 0 and best.loc["pc", "values"] == "lr=0.001"  # lower is better
+    assert best.loc["asp", "best_configuration"] == 1 and best.loc["asp", "configuration_0"] == 2.0
+    spread = spread_table(configs).set_index("method")
+    assert spread.loc["pc", "n"] == 3 and spread.loc["pc", "max"] == 0.7 and spread.loc["pc", "last_improved_at"] == 0
+    assert spread.loc["asp", "last_improved_at"] == 1 and spread.loc["asp", "median"] == 1.75
+    (figure,) = plot_tuning(configs.assign(higher_is_better=False), tmp_path)
+    assert figure.name == "tuning_r" and all(p.is_file() for p in figure.paths)
+
+
 # ---- a real run, killed and resumed -------------------------------------------------------------------------
 @pytest.mark.slow
 def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_path):
@@ -199,8 +218,6 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
         shutil.rmtree(ray_temp, ignore_errors=True)
     assert again.returncode == 0, again.stderr[-3000:]
     assert {f: f.stat().st_mtime_ns for f in before} == before, "a row written before the kill was rewritten"
-    import pandas as pd
-
     table = pd.read_parquet(sweep_dir / "configurations.parquet")
     assert table.groupby("method").size().to_dict() == {"asp": 3, "osp": 3, "pc": 3}
     assert table["objective"].notna().all() and (table["cells_done"] == 4).all()
@@ -212,6 +229,11 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     best = table.loc[table[table["method"] == "pc"]["objective"].idxmax()]
     assert tuned["pc"]["lr"] == pytest.approx(best["knob_lr"])
     assert "best configuration" in again.stderr
+    # The stats job reads a tune run as a sweep, with a tuning section
+    stats = cli("stats", "tune-smoke", "--results", str(results), "--formats", "md", timeout=300)
+    assert stats.returncode == 0, stats.stderr[-2000:]
+    report = (sweep_dir / "report.md").read_text()
+    assert "## Tuning: every method on the same budget" in report and (sweep_dir / "figures" / "tuning_tune-smoke.png").is_file()
     # The tuned settings are a space's settings
     path = space(tmp_path, f'settings = ["{sweep_dir / "tuned.toml"}"]\n'
                  + GRID.replace("first = 100, last = 101", "first = 1000, last = 1000"), "confirm.toml")

@@ -22,6 +22,7 @@ from asp_dist.analysis.layout import is_asp, treatment_order
 from asp_dist.analysis.markdown import format_cell
 from asp_dist.analysis.paper import paper_claim
 from asp_dist.analysis.plots import Figure
+from asp_dist.analysis.tuning import read_configurations, tuning_blocks
 
 
 def _p(p: float) -> str:
@@ -351,6 +352,7 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                                     "min_paired_reaching", "median_there"]))
 
     doc.add(*rliable_section(result))
+    doc.add(*tuning_blocks(read_configurations(result)))  # only where an input is a tune run
 
     doc.add(Heading(2, "What was run"), Table(grid_description(result)))
     missing = t["missing"]

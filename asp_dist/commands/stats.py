@@ -145,6 +145,7 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
     from asp_dist.analysis.latex_tables import write_latex_tables
     from asp_dist.analysis.report import build_report
     from asp_dist.analysis.rliable_plots import plot_rliable
+    from asp_dist.analysis.tuning import plot_tuning, read_configurations
     from asp_dist.results.s3 import upload_tree
 
     start = time.perf_counter()
@@ -159,6 +160,7 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
     figs, notes = plot_all(result, out_dir / "figures") if figures else ([], [])
     if figures:
         figs += plot_rliable(result, out_dir / "figures")
+        figs += plot_tuning(read_configurations(result), out_dir / "figures")  # a tune run's search, per method
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
     doc = build_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command,
                        latex_tables=list(latex))
