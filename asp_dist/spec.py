@@ -182,6 +182,8 @@ class _CommonKnobs:
             if not isinstance(getattr(self, name), str):
                 raise SpecError(f"{name} must be text, got {_short_repr(getattr(self, name))}")
         if self.domain not in DOMAINS:
+            if isinstance(self.domain, str) and self.domain in DOMAINS.problems():
+                get_domain(self.domain)  # the set-aside plugin's one line (e.g. which extra to install)
             raise SpecError(f"unknown domain {_short_repr(self.domain)}; choose one of {', '.join(sorted(DOMAINS))}")
         if self.method not in METHODS:
             if self.method in METHODS.problems():

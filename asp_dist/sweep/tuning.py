@@ -39,7 +39,7 @@ from asp_dist.hashing import stable_hash
 from asp_dist.knobs import Range
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, as_path, parquet_bytes, write_replace
-from asp_dist.spec import CellSpec
+from asp_dist.spec import CellSpec, field_type
 from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ray_host import ray_session
 from asp_dist.sweep.tune_plan import MethodSearch, TunePlan
@@ -260,13 +260,14 @@ def best_configurations(plan: TunePlan, table) -> dict[str, dict[str, Any]]:
             continue
         row = rows.loc[rows[OBJECTIVE].idxmax() if plan.higher_is_better else rows[OBJECTIVE].idxmin()]
         best[method] = {"index": int(row["configuration"]), OBJECTIVE: float(row[OBJECTIVE]),
-                        "values": {k: _plain(row[f"knob_{k}"]) for k in search.ranges}}
+                        "values": {k: _typed(k, row[f"knob_{k}"]) for k in search.ranges}}
     return best
 
 
-def _plain(value: Any) -> Any:
-    """A pandas/numpy scalar as the Python value a space file writes."""
-    return value.item() if hasattr(value, "item") else value
+def _typed(name: str, value: Any) -> Any:
+    """A knob's value from the table as the field's own type (a column shared with other methods' NaN is float)."""
+    value = value.item() if hasattr(value, "item") else value
+    return field_type(name)(value)
 
 
 def tuned_toml(plan: TunePlan, best: dict[str, dict[str, Any]]) -> str:
