@@ -435,6 +435,8 @@ def coerce_field(name: str, value: Any) -> Any:
                     return True
                 if value.strip().lower() in ("0", "false", "no", "off"):
                     return False
+                if value.strip().lower() == "none" and name in _OPTIONAL:  # an unset optional switch, as numbers
+                    return None
                 raise ValueError
             if _is_bool(value) or (isinstance(value, numbers.Integral) and value in (0, 1)):
                 return bool(value)
