@@ -229,6 +229,8 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     best = table.loc[table[table["method"] == "pc"]["objective"].idxmax()]
     assert tuned["pc"]["lr"] == pytest.approx(best["knob_lr"])
     assert "best configuration" in again.stderr
+    status = cli("status", "tune-smoke", "--results", str(results), timeout=60)
+    assert status.returncode == 2 and "is a tune run (asp-dist tune), not a sweep" in status.stderr
     # The stats job reads a tune run as a sweep, with a tuning section
     stats = cli("stats", "tune-smoke", "--results", str(results), "--formats", "md", timeout=300)
     assert stats.returncode == 0, stats.stderr[-2000:]

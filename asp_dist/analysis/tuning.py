@@ -16,9 +16,8 @@ import pandas as pd
 
 from asp_dist.analysis.document import Block, Heading, Table, Text
 from asp_dist.results.location import as_path
-
-CONFIGURATIONS = "configurations.parquet"  # asp_dist.sweep.tuning writes it (the sweep stage is above this one)
-PLAN_FILE = "tune-plan.json"
+from asp_dist.sweep.ledger import TUNE_CONFIGURATIONS as CONFIGURATIONS  # what asp-dist tune writes
+from asp_dist.sweep.ledger import TUNE_PLAN_FILE as PLAN_FILE
 
 
 def read_configurations(result) -> pd.DataFrame:

@@ -266,6 +266,10 @@ def check_manifest_shape(manifest: dict[str, Any], where: AnyPath) -> None:
             raise SweepError(f"{path} is not a sweep manifest: every spec needs a domain and a method")
 
 
+# What asp-dist tune (asp_dist.sweep.tuning) keeps in its run's directory: its plan, every configuration tried
+TUNE_PLAN_FILE, TUNE_CONFIGURATIONS = "tune-plan.json", "configurations.parquet"
+
+
 def read_sweep(results: str | AnyPath, name: str) -> tuple[AnyPath, dict[str, Any]]:
     """The directory and manifest of an existing sweep (for resume and status), its shape checked."""
     sweep_dir = sweep_dir_for(results, name)
@@ -273,6 +277,10 @@ def read_sweep(results: str | AnyPath, name: str) -> tuple[AnyPath, dict[str, An
         raise SweepError(f"{sweep_dir} is not a sweep directory")
     manifest = store.read_manifest(sweep_dir)
     if manifest is None:
+        if (sweep_dir / TUNE_PLAN_FILE).exists():  # asp_dist.sweep.tuning's record: a tune run has no fixed grid
+            raise SweepError(f"{name} is a tune run (asp-dist tune), not a sweep: its configurations are in "
+                             f"{sweep_dir / TUNE_CONFIGURATIONS}; continue it with the same `asp-dist tune` "
+                             f"command; `asp-dist query {name}` and `asp-dist stats {name}` read its cells")
         raise SweepError(f"no sweep {name!r} under {sweep_dir.parent}; start it with "
                          f"`asp-dist sweep SPACE --name {name}`")
     check_manifest_shape(manifest, sweep_dir)

@@ -42,14 +42,14 @@ from asp_dist.results.location import AnyPath, as_path, parquet_bytes, write_rep
 from asp_dist.spec import CellSpec, field_type
 from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ray_host import ray_session
-from asp_dist.sweep.tune_plan import MethodSearch, TunePlan
 from asp_dist.sweep.tune import _tune_result_logs
+from asp_dist.sweep.tune_plan import MethodSearch, TunePlan
 from asp_dist.sweep.tune_storage import tune_storage
 
 log = logging.getLogger(__name__)
 
-PLAN_FILE = "tune-plan.json"          # in the run's directory: what a resumed run must match
-CONFIGURATIONS = "configurations.parquet"
+PLAN_FILE = ledger.TUNE_PLAN_FILE     # in the run's directory: what a resumed run must match
+CONFIGURATIONS = ledger.TUNE_CONFIGURATIONS
 TUNED = "tuned.toml"
 OBJECTIVE = "objective"
 
