@@ -279,7 +279,7 @@ class _CommonKnobs:
         def compute(spec: CellSpec) -> dict[str, Any]:
             prefix = spec.domain + "_"
             return {k: v for k, v in spec.identity_dict().items()
-                    if k in BASE_COMMON or (k.startswith(prefix) and k not in NEW_AGENTS_ONLY)}
+                    if shapes_base(k, prefix)}
 
         return dict(self._cached("base_fields", compute))
 
@@ -393,6 +393,12 @@ SEARCH: dict[str, Range] = {**{f.name: f.metadata["search"] for f in fields(_Com
                             **{k.name: k.search for k in _KNOBS if k.search is not None}}
 # The common fields a base depends on (CellSpec.base_fields); with a domain's base-shaping knobs, never tuned.
 BASE_COMMON = frozenset({"domain", "trial", "root_seed", "base_train_steps", "base_max_attempts", "base_steps_growth"})
+
+
+def shapes_base(name: str, domain_prefix: str) -> bool:
+    """Whether field `name` is one a base depends on, for a cell of the domain whose knobs start with
+    `domain_prefix` ("<domain>_"): the common base fields and the domain's knobs that shape its base."""
+    return name in BASE_COMMON or (name.startswith(domain_prefix) and name not in NEW_AGENTS_ONLY)
 _HINTS = get_type_hints(CellSpec)
 _OPTIONAL = frozenset(name for name in FIELD_NAMES if "None" in str(_HINTS[name]))
 INT64_MAX = 2**63 - 1  # integer knobs are stored as int64 in the result row

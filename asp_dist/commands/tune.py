@@ -19,7 +19,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from asp_dist.sweep.preflight import check_run_options
     from asp_dist.sweep.tune_plan import SEARCHES, TunePlan
 
-    check_run_options(args.workers, args.max_failures, args.checkpoint_every, 10.0)
+    check_run_options(args.workers, args.max_failures, args.checkpoint_every)
     check_ray_temp_dir(args.ray_temp_dir)
     if args.search is not None and args.search not in SEARCHES:
         raise SpecError(f"--search must be one of {', '.join(SEARCHES)}, got {args.search!r}")

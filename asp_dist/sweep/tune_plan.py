@@ -31,7 +31,7 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import Range
 from asp_dist.method_registry import get_method, method_order
-from asp_dist.spec import BASE_COMMON, FIELD_NAMES, NEW_AGENTS_ONLY, SEARCH, CellSpec, field_type
+from asp_dist.spec import FIELD_NAMES, SEARCH, CellSpec, field_type, shapes_base
 from asp_dist.sweep.spaces import expand, space_file
 
 SEARCHES = ("tpe", "random")
@@ -175,8 +175,7 @@ def _ranges(declared: Any, sample: CellSpec, label: str) -> dict[str, Range]:
     for name, raw in declared.items():
         if name not in FIELD_NAMES:
             raise SweepError(f"{label}: [tune.ranges] names {name!r}, which is no knob; `asp-dist fields` lists them")
-        if name in BASE_COMMON or (name.startswith(f"{sample.domain}_") and name not in NEW_AGENTS_ONLY) \
-                or name in ("method", "paired"):
+        if shapes_base(name, f"{sample.domain}_") or name in ("method", "paired"):
             raise SweepError(f"{label}: {name} cannot be tuned: every configuration of a tune run adopts the same "
                              f"base and trains on the same cells")
         needs = ranges[name].needs if name in ranges else ()
