@@ -45,7 +45,7 @@ from asp_dist.results.query import run_query
 from asp_dist.spec import CellSpec
 from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import get_base, rejected_path
-from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing
+from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing, spread_bases
 from asp_dist.sweep.spaces import expand
 from asp_dist.training.engines import pack_key, run_pack, supports
 from asp_dist.training.row import comparable
@@ -138,6 +138,24 @@ def test_packs_are_a_deterministic_function_of_the_grid(tmp_path):
     # A group of one packable cell runs alone, as does every cell with --pack cell.
     assert all(u.pack_id is None for u in make_units(specs[:1] + specs[-4:], Packing("trial", 21)))
     assert all(u.pack_id is None for u in make_units(specs, Packing()))
+
+
+def test_units_are_spread_over_bases_so_concurrent_workers_do_not_wait_on_one_base(tmp_path):
+    """A sweep hands its workers the first unit of every base, then the second of each, ...: the same units in
+    another order, in which neighbours need distinct bases wherever the grid has more than one left."""
+    specs = expand(write_space(tmp_path))
+    for packing in (Packing(), Packing("trial", 4)):
+        units = make_units(specs, packing)
+        spread = spread_bases(units)
+        assert sorted(u.name for u in spread) == sorted(u.name for u in units)
+        bases = [u.specs[0].base_key for u in spread]
+        rounds = [bases[:len(set(bases))]]  # the first round: every base once, in the grid's order
+        assert rounds[0] == list(dict.fromkeys(u.specs[0].base_key for u in units))
+        left = {b: bases.count(b) for b in set(bases)}
+        for a, b in zip(bases, bases[1:]):  # adjacent units share a base only once every other base is used up
+            left[a] -= 1
+            assert a != b or sum(n > 0 for k, n in left.items() if k != a) == 0
+    assert spread_bases(units) == spread_bases(list(units))  # a function of the units alone
 
 
 def test_a_packed_trainer_kept_out_of_sweeps_leaves_its_cells_single(monkeypatch):

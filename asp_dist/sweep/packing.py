@@ -175,6 +175,22 @@ def make_units(specs: Sequence[CellSpec], packing: Packing) -> list[Unit]:
     return [unit_at[i] for i in sorted(unit_at)]
 
 
+def spread_bases(units: Sequence[Unit]) -> list[Unit]:
+    """`units` in the order a sweep hands them to its workers: the first unit of every base, then the second of
+    every base, and so on (each round in the given order). In the grid's order the units of one trial are
+    adjacent, so two workers take two units of one trial and the second waits on the base lock while the first
+    trains the base (minutes for a base that needs its retries); spread, concurrent units need distinct bases
+    and a unit that comes back to a base finds it cached. Only the order changes: the units, their packs and
+    their rows are the same."""
+    rank: dict[str, int] = {}
+    keyed = []
+    for position, unit in enumerate(units):
+        base = unit.specs[0].base_key
+        keyed.append((rank.get(base, 0), position, unit))
+        rank[base] = rank.get(base, 0) + 1
+    return [unit for _, _, unit in sorted(keyed, key=lambda k: k[:2])]
+
+
 def describe_units(units: Sequence[Unit]) -> str:
     """E.g. "4 packs of 6-21 cells + 3 single cells"."""
     packs = [len(u.specs) for u in units if u.pack_id is not None]

@@ -64,7 +64,7 @@ from asp_dist.results.location import AnyPath, as_path, write_replace
 from asp_dist.results.s3 import S3Path
 from asp_dist.sweep import ledger, preflight, provenance, signals, worker_start
 from asp_dist.sweep.ledger import SweepResult
-from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing
+from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing, spread_bases
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
 from asp_dist.sweep.spaces import grid_hash
@@ -498,7 +498,7 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                 done, _ = ledger.finished_and_failed(sweep_dir, grid, remember=True)  # status reads no footer again
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
-                pending = [u for u in units if not set(u.cell_ids) <= done]
+                pending = spread_bases([u for u in units if not set(u.cell_ids) <= done])
                 counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
                 where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
                 how = f", packed ({packing.describe()}: {describe_units(units)})" if packing.packed else ""
