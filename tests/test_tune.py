@@ -13,6 +13,7 @@ import tomllib
 
 import pandas as pd
 import pytest
+from budgets import TINY
 from harness import cli, kill_group, parquet_files, read_log, space, start_cli, wait_for, wait_until_gone
 
 from asp_dist.errors import SweepError
@@ -82,10 +83,33 @@ pc = ["lr", "batch_size"]
     ("[tune.knobs]\nvae = ['lr']", "names method(s) vae that its grid does not have"),
     ("budgets = 3", "unknown key(s) budgets in [tune]"),
     ("from_defaults = 1", "from_defaults must be true or false"),
+    ("scheduler = 'hyperband'", "scheduler must be one of none, asha, got 'hyperband'"),
+    ("grace_points = 5", 'grace_points is an ASHA setting, which needs scheduler = "asha"'),
+    ("scheduler = 'asha'\ngrace_points = 0", "grace_points must be an integer >= 1, got 0"),
+    ("scheduler = 'asha'\ngrace_points = 2.5", "grace_points must be an integer >= 1, got 2.5"),
+    ("scheduler = 'asha'\nreduction_factor = 1", "reduction_factor must be a number above 1, got 1"),
+    ("scheduler = 'asha'\nreduction_factor = 'half'", "reduction_factor must be a number above 1"),
+    ("scheduler = 'asha'\nbrackets = 0", "brackets must be an integer >= 1, got 0"),
+    ("scheduler = 'asha'\ngrace_points = 51", "grace_points is 51, beyond the 50 curve points a cell"),
 ])
 def test_bad_tune_tables_are_refused_in_one_line(tmp_path, table, message):
     with pytest.raises(SweepError, match=re.escape(message)):
         plan_of(tmp_path, table)
+
+
+def test_asha_is_a_tune_option_and_a_run_without_it_keeps_its_fingerprint(tmp_path):
+    plan = plan_of(tmp_path, "budget = 4\nscheduler = 'asha'\ngrace_points = 5\nreduction_factor = 2\n")
+    assert (plan.settings.scheduler, plan.settings.grace_points, plan.settings.reduction_factor,
+            plan.settings.brackets) == ("asha", 5, 2.0, 1)
+    plain = plan_of(tmp_path, "budget = 4\n")
+    assert plain.settings.scheduler == "none"
+    # Without a scheduler, the settings a run records (and fingerprints) are those of a run made before
+    # schedulers existed: such a run resumes. ASHA's knobs are part of an ASHA run's fingerprint.
+    assert plain.settings.record() == {"budget": 4, "search": "tpe", "seed": 0, "metric": "mixed",
+                                       "from_defaults": True}
+    assert plan.fingerprint() != plain.fingerprint()
+    other = plan_of(tmp_path, "budget = 4\nscheduler = 'asha'\ngrace_points = 10\nreduction_factor = 2\n")
+    assert other.fingerprint() != plan.fingerprint()
 
 
 def test_tuning_happens_on_calibration_trials_only(tmp_path):
@@ -105,6 +129,17 @@ def test_the_cli_refuses_a_bad_tune_space_in_one_line_and_writes_nothing(tmp_pat
     good = space(tmp_path, GRID + "\n[tune]\nbudget = 2\n", "good.toml")
     out = cli("tune", good, "--results", str(tmp_path / "runs"), "--budget", "0", timeout=60)
     assert out.returncode == 2 and "--budget" in out.stderr and not (tmp_path / "runs").exists()
+    out = cli("tune", good, "--results", str(tmp_path / "runs"), "--scheduler", "hyperband", timeout=60)
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--scheduler must be one of none, asha" \
+        in out.stderr and not (tmp_path / "runs").exists()
+    asha = space(tmp_path, GRID + "\n[tune]\nbudget = 2\nscheduler = 'asha'\nreduction_factor = 0.5\n", "asha.toml")
+    out = cli("tune", asha, "--results", str(tmp_path / "runs"), timeout=60)
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and out.stderr.startswith("asp-dist: error: ")
+    assert "reduction_factor must be a number above 1" in out.stderr and not (tmp_path / "runs").exists()
+    broken = space(tmp_path, GRID + "\n[tune\nbudget = 2\n", "broken.toml")
+    out = cli("tune", broken, "--results", str(tmp_path / "runs"), timeout=60)
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "invalid TOML in" in out.stderr
+    assert not (tmp_path / "runs").exists()
 
 
 # ---- ranges declared where the knobs are ------------------------------------------------------------------
@@ -195,6 +230,134 @@ def test_the_tuning_tables_name_each_methods_best_and_the_spread_of_its_search(t
     assert spread.loc["asp", "last_improved_at"] == 1 and spread.loc["asp", "median"] == 1.75
     (figure,) = plot_tuning(configs.assign(higher_is_better=False), tmp_path)
     assert figure.name == "tuning_r" and all(p.is_file() for p in figure.paths)
+
+
+# ---- ASHA: early stopping on the configurations' learning curves -----------------------------------------
+def test_a_configuration_reports_the_median_probe_once_every_cell_has_closed_a_curve_point():
+    from types import SimpleNamespace
+
+    from asp_dist.sweep.tuning import CurveObjective
+
+    reports = []
+    curve = CurveObjective(["a", "b", "c"], "probe_mixed", reports.append)
+    cell = {c: SimpleNamespace(cell_id=c) for c in "abcz"}
+    point = lambda v=None: {"step": 1.0} if v is None else {"step": 1.0, "probe_mixed": v}
+    curve.seed("c", [None, 0.9, 0.5])  # a cell with a row: its stored curve
+    curve([(cell["a"], [point(), point(0.2)]), (cell["z"], [point(5.0)])])  # z: not of this configuration
+    assert reports == []  # b has closed no point yet
+    curve([(cell["b"], [point(), point(0.4), point(0.7)])])
+    # point 1 carries no probe: nothing to report; point 2: the median over the three cells
+    assert reports == [{"objective": 0.4, "curve_point": 2}]
+    curve([(cell["a"], [point(float("nan"))])])
+    assert reports[-1] == {"objective": 0.6, "curve_point": 3}  # NaN-safe: a's NaN left out
+    # A pack that trains a member with a row again passes its points on from the first: each is reported once
+    curve([(cell["c"], [point(), point(0.9), point(0.5), point()])])
+    assert len(reports) == 2
+    curve([(cell["a"], [point(float("nan"))]), (cell["b"], [point(float("nan"))])])
+    assert len(reports) == 2 and curve.reported == 4  # no finite value at point 4: nothing to report
+
+
+def test_asha_sees_only_curve_point_results_and_never_stops_a_configuration_at_its_last_point(tmp_path):
+    """What the tune run relies on in Ray's ASHAScheduler: a result without curve_point (a checkpoint's, with
+    its NaN objective; the final report) is passed over and reaches no rung; the last curve point does not
+    stop a configuration by itself (its cells still have to be evaluated and written)."""
+    from types import SimpleNamespace
+
+    from ray.tune.schedulers import TrialScheduler
+
+    from asp_dist.sweep.tuning import _scheduler
+
+    plan = plan_of(tmp_path, "budget = 4\nscheduler = 'asha'\ngrace_points = 5\nreduction_factor = 2\n")
+    asha = _scheduler(plan, plan.searches["pc"])
+    asha.set_search_properties("objective", "max")
+    assert [m for m, _ in asha._brackets[0]._rungs] == [40, 20, 10, 5]  # 50 curve points at train_steps 150
+    good, bad = SimpleNamespace(trial_id="good"), SimpleNamespace(trial_id="bad")
+    for trial in (good, bad):
+        asha.on_trial_add(None, trial)
+    assert asha.on_trial_result(None, bad, {"objective": float("nan"), "step": 30}) == TrialScheduler.CONTINUE
+    assert all(not recorded for _, recorded in asha._brackets[0]._rungs)
+    assert asha.on_trial_result(None, good, {"objective": 0.6, "curve_point": 5}) == TrialScheduler.CONTINUE
+    assert asha.on_trial_result(None, good, {"objective": 0.7, "curve_point": 50}) == TrialScheduler.CONTINUE
+    assert asha.on_trial_result(None, bad, {"objective": 0.3, "curve_point": 5}) == TrialScheduler.STOP
+    assert asha.on_trial_result(None, good, {"objective": 0.7, "cells_done": 4}) == TrialScheduler.CONTINUE
+    assert _scheduler(plan_of(tmp_path, "budget = 4\n"), plan.searches["pc"]) is None  # FIFO: today's run
+
+
+TINY_PARTICLES = "[[grid]]\n[grid.fixed]\n" + "\n".join(f"{k} = {v!r}" for k, v in TINY["particles"].items()) + """
+[grid.axes]
+domain = ["particles"]
+method = ["pc"]
+paired = [4]
+trial = { first = 100, last = 101 }
+
+[tune]
+budget = 4
+seed = 0
+scheduler = "asha"
+grace_points = 1
+reduction_factor = 2
+[tune.ranges]
+lr = { log_uniform = [1e-5, 1e-1] }
+"""
+
+
+def test_asha_stops_hopeless_configurations_which_write_no_rows_and_are_never_chosen_or_run_again(tmp_path):
+    """A real tune run with an aggressive ASHA (grace 1, reduction factor 2) on tiny particle cells (40 curve
+    points each; a configuration is one pack of 2 cells): some configurations are stopped on their learning curves; each
+    counts once against the budget, has no rows and no objective, is marked with where it was stopped, and
+    tuned.toml takes the best of those that finished. Run again, the run trains nothing: a stopped
+    configuration (TERMINATED in Tune's state) is not resumed."""
+    results, ray_temp = tmp_path / "runs", f"/tmp/asp-ta-{os.getpid()}"  # Ray's socket paths are short
+    args = ("tune", space(tmp_path, TINY_PARTICLES, "asha.toml"), "--results", str(results), "--workers", "1",
+            "--ray-temp-dir", ray_temp)
+    sweep_dir = results / "asha"
+    try:
+        out = cli(*args, timeout=300)
+        assert out.returncode == 0, out.stderr[-3000:]
+        rows = {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)}
+        again = cli(*args, timeout=300)
+    finally:
+        shutil.rmtree(ray_temp, ignore_errors=True)
+    assert again.returncode == 0, again.stderr[-3000:]
+    table = pd.read_parquet(sweep_dir / "configurations.parquet")
+    assert len(table) == 4 and list(table["configuration"]) == [0, 1, 2, 3]
+    stopped, finished = table[table["stopped_early"]], table[~table["stopped_early"]]
+    assert len(stopped) >= 1 and len(finished) >= 1
+    assert stopped["objective"].isna().all() and stopped["objective_at_stop"].notna().all()
+    assert stopped["stopped_at_point"].between(1, 40).all() and (stopped["cells_done"] == 0).all()
+    assert finished["objective"].notna().all() and (finished["cells_done"] == 2).all()
+    assert finished["stopped_at_point"].isna().all()
+    written = {f.stem for f in rows}
+    assert written == {c for ids in finished["cell_ids"] for c in ids.split(",")}, "a stopped configuration's row"
+    assert not list((sweep_dir / "tune").rglob(".ckpt-tmp/*")), "a checkpoint left staged"
+    tuned = tomllib.loads((sweep_dir / "tuned.toml").read_text())["methods"]
+    assert tuned["pc"]["lr"] == pytest.approx(finished.loc[finished["objective"].idxmax(), "knob_lr"])
+    assert f"ASHA stopped {len(stopped)} of 4 pc configurations early" in out.stderr
+    assert "stopped by ASHA at curve point" in out.stderr
+    # Run again: nothing trained, nothing rewritten, the same table (the stopped ones still stopped)
+    assert {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)} == rows
+    assert "configurations, last" not in again.stderr  # no configuration completed in the second run
+    pd.testing.assert_frame_equal(pd.read_parquet(sweep_dir / "configurations.parquet"), table)
+
+
+def test_the_tuning_section_counts_the_configurations_asha_stopped_and_never_names_one_best():
+    from asp_dist.analysis.document import Text
+    from asp_dist.analysis.tuning import best_table, spread_table, tuning_blocks
+
+    plain = pd.DataFrame({"run": "plain", "method": "pc", "configuration": [0, 1], "knob_lr": [1e-3, 2e-3],
+                          "objective": [0.5, 0.6], "higher_is_better": True})
+    asha = pd.DataFrame({"run": "asha", "method": ["pc"] * 4, "configuration": [0, 1, 2, 3],
+                         "knob_lr": [1e-3, 2e-3, 3e-3, 4e-3], "objective": [0.5, float("nan"), 0.4, 0.9],
+                         "stopped_early": [False, True, False, True], "higher_is_better": True})
+    # (a stopped configuration has no objective; 0.9 here checks that it is left out even if it had one)
+    configs = pd.concat([plain, asha], ignore_index=True)
+    best = best_table(configs).set_index("run")
+    assert best.loc["asha", "best_configuration"] == 0 and best.loc["asha", "stopped_early"] == 2
+    assert best.loc["plain", "best_configuration"] == 1 and best.loc["plain", "stopped_early"] == 0
+    assert "stopped_early" not in best_table(plain)  # a run without ASHA: today's table
+    assert spread_table(configs).set_index("run").loc["asha", "n"] == 2
+    assert any(isinstance(b, Text) and "stopped_early" in b.md for b in tuning_blocks(configs))
+    assert not any(isinstance(b, Text) and "stopped_early" in b.md for b in tuning_blocks(plain))
 
 
 # ---- a real run, killed and resumed -------------------------------------------------------------------------

@@ -2,8 +2,9 @@
 
 Per method: its best configuration, the spread of the objective over every configuration it tried (how much
 its knobs matter), and the objective against the configuration index with the best so far (does the search
-converge within the budget?). Only runs of `asp-dist tune` have a configurations.parquet; a sweep has none,
-and then the report has no tuning section.
+converge within the budget?). A run with ASHA (`scheduler = "asha"`) has configurations it stopped early: they
+have no objective, are counted per method (`stopped_early`) and never chosen. Only runs of `asp-dist tune` have
+a configurations.parquet; a sweep has none, and then the report has no tuning section.
 """
 
 from __future__ import annotations
@@ -36,15 +37,24 @@ def read_configurations(result) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
+def _scored(configs: pd.DataFrame) -> pd.DataFrame:
+    """The configurations with no objective where ASHA stopped them (configurations.parquet has none there)."""
+    if "stopped_early" not in configs:
+        return configs
+    return configs.assign(objective=configs["objective"].where(~configs["stopped_early"].eq(True)))
+
+
 def _knob_columns(configs: pd.DataFrame) -> list[str]:
     return [c for c in configs.columns if c.startswith("knob_")]
 
 
 def best_table(configs: pd.DataFrame) -> pd.DataFrame:
     """Each (run, method): its best configuration (ties: the lower index), its values and objective, and
-    configuration 0's objective (the method's defaults where the run started from them)."""
+    configuration 0's objective (the method's defaults where the run started from them); where a run used ASHA,
+    how many configurations it stopped early (never chosen: they have no objective)."""
     rows = []
-    for (run, method), g in configs.groupby(["run", "method"], sort=False):
+    asha = "stopped_early" in configs
+    for (run, method), g in _scored(configs).groupby(["run", "method"], sort=False):
         scored = g[g["objective"].notna()].sort_values("configuration")
         if scored.empty:
             continue
@@ -55,6 +65,7 @@ def best_table(configs: pd.DataFrame) -> pd.DataFrame:
         rows.append({"run": run, "method": method, "configurations": len(g), "best_configuration": int(best["configuration"]),
                      "best_objective": float(best["objective"]),
                      "configuration_0": float(first["objective"].iloc[0]) if len(first) else np.nan,
+                     **({"stopped_early": int(g["stopped_early"].eq(True).sum())} if asha else {}),
                      "values": values})
     return pd.DataFrame(rows)
 
@@ -63,7 +74,7 @@ def spread_table(configs: pd.DataFrame) -> pd.DataFrame:
     """The objective over each method's configurations: quartiles and range (sensitivity to its knobs), and
     the index at which the best so far was last improved (late improvements: the budget was not enough)."""
     rows = []
-    for (run, method), g in configs.groupby(["run", "method"], sort=False):
+    for (run, method), g in _scored(configs).groupby(["run", "method"], sort=False):
         g = g.sort_values("configuration")
         y = g["objective"].to_numpy(dtype=float)
         ok = ~np.isnan(y)
@@ -99,7 +110,7 @@ def plot_tuning(configs: pd.DataFrame, out_dir: Path) -> list:
     from asp_dist.analysis.plots import METHOD_COLORS, Figure, save_figure
 
     figures = []
-    for run, runs in configs.groupby("run", sort=False):
+    for run, runs in _scored(configs).groupby("run", sort=False):
         higher = bool(runs["higher_is_better"].iloc[0])
         fig, ax = plt.subplots(figsize=(6.4, 3.6), layout="constrained")
         for i, (method, g) in enumerate(runs.groupby("method", sort=False)):
@@ -127,6 +138,10 @@ def tuning_blocks(configs: pd.DataFrame) -> list[Block]:
             Text("Each method's best configuration by its own objective (the median of the metric over its "
                  "calibration cells), beside configuration 0 (its defaults, where the run started from them):"),
             Table(best_table(configs)),
+            *([Text("`stopped_early`: the configurations ASHA stopped on their learning curves; they have no "
+                    "objective and are never chosen (configurations.parquet has the curve point each was stopped "
+                    "at and its objective there).")]
+              if "stopped_early" in configs and configs["stopped_early"].eq(True).any() else []),
             Text("The objective over every configuration a method tried: its spread says how much the method's "
                  "knobs matter; `last_improved_at` is the configuration that last raised the best so far (near the "
                  "budget's end: the search had not settled). The figure `tuning_<run>` plots it."),

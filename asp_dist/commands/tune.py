@@ -17,15 +17,17 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from asp_dist.commands.sweep import check_ray_temp_dir
     from asp_dist.sweep import signals
     from asp_dist.sweep.preflight import check_run_options
-    from asp_dist.sweep.tune_plan import SEARCHES, TunePlan
+    from asp_dist.sweep.tune_plan import SCHEDULERS, SEARCHES, TunePlan, check_scheduler
 
     check_run_options(args.workers, args.max_failures, args.checkpoint_every)
     check_ray_temp_dir(args.ray_temp_dir)
     if args.search is not None and args.search not in SEARCHES:
         raise SpecError(f"--search must be one of {', '.join(SEARCHES)}, got {args.search!r}")
+    if args.scheduler is not None and args.scheduler not in SCHEDULERS:
+        raise SpecError(f"--scheduler must be one of {', '.join(SCHEDULERS)}, got {args.scheduler!r}")
     plan = TunePlan.from_space(args.space, args.name)
-    overrides = {k: v for k, v in (("budget", args.budget), ("search", args.search), ("seed", args.seed))
-                 if v is not None}
+    overrides = {k: v for k, v in (("budget", args.budget), ("search", args.search), ("seed", args.seed),
+                                   ("scheduler", args.scheduler)) if v is not None}
     if overrides:
         if overrides.get("budget", 1) < 1:
             raise SpecError(f"--budget is the number of configurations per method, an integer >= 1; "
@@ -33,6 +35,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         if overrides.get("seed", 0) < 0:
             raise SpecError(f"--seed must be >= 0, got {overrides['seed']}")
         plan.settings = dataclasses.replace(plan.settings, **overrides)
+        if "scheduler" in overrides:  # the space's grace_points against its cells, as the plan checks its own
+            check_scheduler(plan.settings, [c for s in plan.searches.values() for c in s.cells], "--scheduler")
     check_data([c for s in plan.searches.values() for c in s.cells])
     with signals.sigterm_as_interrupt():
         try:
@@ -51,8 +55,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("tune", help="tune every method of a tune space on the same budget (Ray Tune search)",
                        description="Search each method's knobs ([tune] of the space: budget, search, seed, metric, "
-                                   "ranges) on the space's calibration cells, the same number of configurations "
-                                   "for every method. Resumable: run the same command again after a stop. Writes "
+                                   "scheduler, ranges) on the space's calibration cells, the same number of "
+                                   "configurations for every method. Resumable: run the same command again after a stop. Writes "
                                    "the cells' rows, configurations.parquet and tuned.toml under DIR/NAME.")
     p.add_argument("space", help="a tune space: tune_spaces/<name>.toml or a path")
     p.add_argument("--name", help="the tune run's name (default: the space's)")
@@ -61,6 +65,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--budget", type=int, help="configurations per method (default: the space's [tune] budget)")
     p.add_argument("--search", help="tpe | random (default: the space's)")
     p.add_argument("--seed", type=int, help="the searcher's seed (default: the space's)")
+    p.add_argument("--scheduler", help="none | asha: stop hopeless configurations early on their learning curves, "
+                                       "with the space's ASHA settings (default: the space's)")
     p.add_argument("--ray-temp-dir", metavar="DIR", help="the embedded Ray's temp dir")
     p.add_argument("--max-failures", type=int, default=2, help="retries of a crashed configuration (default 2)")
     p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="S",

@@ -107,10 +107,7 @@ def load_space(name_or_path: str, _seen: tuple[str, ...] = ()) -> list[dict[str,
     space = path.stem
     if space in _seen:
         raise SweepError(f"space {space} includes itself (via {' -> '.join(_seen)})")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise SweepError(f"space {space}: invalid TOML in {path}: {e}") from None
+    data = read_space_toml(path)
     unknown = sorted(set(data) - SPACE_KEYS)
     if unknown:
         raise SweepError(f"space {space}: unknown key(s) {', '.join(unknown)}; "
@@ -198,10 +195,18 @@ def expand(name_or_path: str) -> list[CellSpec]:
     return sorted(specs.values(), key=lambda s: (s.domain, s.root_seed, s.trial, s.paired, s.method, s.cell_id))
 
 
+def read_space_toml(path: Path) -> dict[str, Any]:
+    """A space file's TOML; a syntax error is the one-line SweepError that names the file."""
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SweepError(f"space {path.stem}: invalid TOML in {path}: {e}") from None
+
+
 def space_logging(name_or_path: str) -> dict[str, Any]:
     """A space file's [logging] table (its own, not its includes'), checked: {} when it has none."""
     path = space_file(name_or_path)
-    table = tomllib.loads(path.read_text()).get("logging", {})
+    table = read_space_toml(path).get("logging", {})
     space = path.stem
     if not isinstance(table, dict):
         raise SweepError(f"space {space}: logging must be a table ([logging]), got {table!r}")

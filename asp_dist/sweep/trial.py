@@ -102,9 +102,12 @@ def train_cell(config: dict[str, Any]) -> None:
         tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or unit["sweep_dir"]})
 
 
-def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None) -> None:
+def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None,
+               on_points: Callable[[Any], None] | None = None) -> None:
     """Train one unit's members without a row and write them (the module docstring's steps). `report`: what
-    the unit's results and checkpoints go through (tune.report; asp-dist tune adds its objective to each)."""
+    the unit's results and checkpoints go through (tune.report; asp-dist tune adds its objective to each);
+    `on_points`: also given the members' curve points as they close, beside the tracker feed (asp-dist tune's
+    early stopping reads them)."""
     report = report or tune.report
     from asp_dist.sweep.base_cache import get_base
     from asp_dist.training import engines
@@ -143,7 +146,7 @@ def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None) 
         try:
             results = run_unit(trainer, live, bases=bases, curves=True,
                                checkpoint=lambda state: save(dict(state, pack_id=pack_id)), restore=restore,
-                               checkpoint_every_s=unit["checkpoint_every_s"], on_points=feed)
+                               checkpoint_every_s=unit["checkpoint_every_s"], on_points=_both(feed, on_points))
         except StorageError:
             raise
         except deterministic as e:
@@ -190,6 +193,18 @@ def final_report(unit: dict[str, Any], finals: dict[str, dict[str, float]], writ
 
 
 _HUBS: dict[str, Any] = {}  # sweep -> its hub's handle (or None), looked up once per worker process and Ray session
+
+
+def _both(first: Callable[[Any], None] | None, second: Callable[[Any], None] | None) -> Callable[[Any], None] | None:
+    """One on_points hook calling each of two (either may be None)."""
+    hooks = [h for h in (first, second) if h is not None]
+    if len(hooks) < 2:
+        return hooks[0] if hooks else None
+
+    def both(batch: Any) -> None:
+        for hook in hooks:
+            hook(batch)
+    return both
 
 
 def _feed(sweep: str, cells: set[str]) -> Feed | None:

@@ -10,6 +10,10 @@ and a [tune] table::
     seed = 0                 # the searcher's seed: a tune run is reproducible
     metric = "mixed"         # the domain's metric the objective is the median of (its direction is the domain's)
     from_defaults = true     # configuration 0 of each method is its cells' own values (where inside the ranges)
+    scheduler = "none"       # none: every configuration trains to its end | asha: ASHA stops hopeless ones early
+    grace_points = 10        # asha: no configuration is stopped before this curve point (of ~50 per cell)
+    reduction_factor = 3     # asha: rungs at grace_points · reduction_factor^k; past one go on only the best 1/3
+    brackets = 1             # asha: its brackets (more than 1: which bracket a configuration gets is random)
     [tune.ranges]            # optional: narrow, widen or add a knob's range (asp_dist.knobs.Range)
     lr = { log_uniform = [3e-4, 3e-3] }
     [tune.knobs]             # optional: the knobs searched for a method (default: every knob with a range
@@ -22,7 +26,6 @@ search never looks at another method's rows).
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,10 +35,12 @@ from asp_dist.hashing import stable_hash
 from asp_dist.knobs import Range
 from asp_dist.method_registry import get_method, method_order
 from asp_dist.spec import FIELD_NAMES, SEARCH, CellSpec, field_type, shapes_base
-from asp_dist.sweep.spaces import expand, space_file
+from asp_dist.sweep.spaces import expand, read_space_toml, space_file
 
 SEARCHES = ("tpe", "random")
-TUNE_KEYS = {"budget", "search", "seed", "metric", "from_defaults", "ranges", "knobs"}
+SCHEDULERS = ("none", "asha")
+ASHA_KEYS = ("grace_points", "reduction_factor", "brackets")
+TUNE_KEYS = {"budget", "search", "seed", "metric", "from_defaults", "scheduler", *ASHA_KEYS, "ranges", "knobs"}
 CALIBRATION_TRIALS = range(100, 1000)  # 1000 and up: confirmatory trials, never tuned on
 
 
@@ -46,6 +51,19 @@ class TuneSettings:
     seed: int = 0
     metric: str = "mixed"
     from_defaults: bool = True
+    scheduler: str = "none"      # "asha": ray.tune.schedulers.ASHAScheduler on the configurations' curve points
+    grace_points: int = 10
+    reduction_factor: float = 3.0
+    brackets: int = 1
+
+    def record(self) -> dict[str, Any]:
+        """The settings as a tune run records and fingerprints them: without a scheduler, the settings of a run
+        made before schedulers existed (so that it resumes), with ASHA its knobs too."""
+        settings = dict(vars(self))
+        if self.scheduler == "none":
+            for key in ("scheduler", *ASHA_KEYS):
+                del settings[key]
+        return settings
 
 
 @dataclass
@@ -84,7 +102,7 @@ class TunePlan:
 
     def fingerprint(self) -> str:
         """What a resumed tune run must match: the settings, each method's ranges and cells."""
-        return stable_hash({"settings": vars(self.settings),
+        return stable_hash({"settings": self.settings.record(),
                             "searches": {m: {"ranges": {k: r.to_toml() for k, r in s.ranges.items()},
                                              "cells": sorted(c.cell_id for c in s.cells)}
                                          for m, s in self.searches.items()}})[:16]
@@ -93,7 +111,7 @@ class TunePlan:
     def from_space(cls, space: str, name: str | None = None) -> "TunePlan":
         path = space_file(space)
         text = path.read_text()
-        table = tomllib.loads(text).get("tune")
+        table = read_space_toml(path).get("tune")
         label = f"tune space {path.stem}"
         if not isinstance(table, dict):
             raise SweepError(f"{label}: it has no [tune] table (budget, search, seed, metric, ranges); a space "
@@ -109,6 +127,7 @@ class TunePlan:
             raise SweepError(f"{label}: unknown key(s) {', '.join(unknown)} in [tune]; allowed: "
                              f"{', '.join(sorted(TUNE_KEYS))}")
         settings = _settings(table, label)
+        check_scheduler(settings, cells, label)
         domains = sorted({c.domain for c in cells})
         if len(domains) != 1:
             raise SweepError(f"{label}: a tune run searches one domain's methods, its grid has {', '.join(domains)}")
@@ -161,7 +180,41 @@ def _settings(table: dict[str, Any], label: str) -> TuneSettings:
         raise SweepError(f"{label}: seed must be an integer >= 0, got {seed!r}")
     if not isinstance(metric, str):
         raise SweepError(f"{label}: metric must be a metric's name, got {metric!r}")
-    return TuneSettings(budget, search, seed, metric, from_defaults)
+    scheduler = table.get("scheduler", defaults.scheduler)
+    if scheduler not in SCHEDULERS:
+        raise SweepError(f"{label}: scheduler must be one of {', '.join(SCHEDULERS)}, got {scheduler!r}")
+    asha = {k: table.get(k, getattr(defaults, k)) for k in ASHA_KEYS}
+    stray = [k for k in ASHA_KEYS if k in table and scheduler != "asha"]
+    if stray:
+        raise SweepError(f"{label}: {', '.join(stray)} {'is an ASHA setting' if len(stray) == 1 else 'are ASHA settings'}"
+                         f', which needs scheduler = "asha"')
+    for key in ("grace_points", "brackets"):
+        if not isinstance(asha[key], int) or isinstance(asha[key], bool) or asha[key] < 1:
+            raise SweepError(f"{label}: {key} must be an integer >= 1, got {asha[key]!r}")
+    factor = asha["reduction_factor"]
+    if not isinstance(factor, (int, float)) or isinstance(factor, bool) or not factor > 1 or factor == float("inf"):
+        raise SweepError(f"{label}: reduction_factor must be a number above 1, got {factor!r}")
+    return TuneSettings(budget, search, seed, metric, from_defaults, scheduler, asha["grace_points"], float(factor),
+                        asha["brackets"])
+
+
+def curve_points(train_steps: int) -> int:
+    """How many learning-curve points a cell of `train_steps` updates records (asp_dist.training.records: one
+    every train_steps // CURVE_POINTS updates, and one at the last)."""
+    from asp_dist.training.records import CURVE_POINTS  # imports torch: only a run with ASHA asks
+
+    every = max(1, train_steps // CURVE_POINTS)
+    return train_steps // every + (1 if train_steps % every else 0)
+
+
+def check_scheduler(settings: TuneSettings, cells: list[CellSpec], label: str) -> None:
+    """ASHA's grace period is within the cells' curves: its rungs are curve points."""
+    if settings.scheduler != "asha":
+        return
+    points = min(curve_points(c.resolved().train_steps) for c in cells)
+    if settings.grace_points > points:
+        raise SweepError(f"{label}: grace_points is {settings.grace_points}, beyond the {points} curve points a "
+                         f"cell of this grid records")
 
 
 def _ranges(declared: Any, sample: CellSpec, label: str) -> dict[str, Range]:

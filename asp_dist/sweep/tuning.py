@@ -13,6 +13,15 @@ their results together (ConcurrencyLimiter with batch=True), so what it suggests
 configuration happens to finish first: a tune run with a seed is reproducible on any number of CPUs of
 the same count.
 
+Optionally (`scheduler = "asha"`), ASHA (ray.tune.schedulers.ASHAScheduler) stops hopeless configurations
+early: while a configuration trains, each curve point that every one of its cells has closed and that carries
+the cheap probe of the domain's metric (`probe_<metric>`, every 5th point and the last) is reported as
+{objective: the median over the cells, curve_point: its index from 1}, and ASHA compares configurations at its
+rungs (curve points). A stopped configuration writes no row for the cells it was training (where the domain does
+not pack, its cells train one after another and only the last one's points complete a report: the cells before
+it keep their rows); it counts against its method's budget once, has no objective, is never chosen, and its
+trial ends TERMINATED: never run again.
+
 Resumable like a sweep: the lock is the sweep's; a killed run's experiment is restored (Tuner.restore: the
 searcher's state, the finished configurations, the running ones from their checkpoints), finished cells are
 never trained again (their rows are there) and finished configurations never evaluated again. At the end:
@@ -28,6 +37,7 @@ import math
 import os
 import statistics
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TextIO
 
@@ -43,7 +53,7 @@ from asp_dist.spec import CellSpec, field_type
 from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ray_host import ray_session
 from asp_dist.sweep.tune import _tune_result_logs
-from asp_dist.sweep.tune_plan import MethodSearch, TunePlan
+from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, curve_points
 from asp_dist.sweep.tune_storage import tune_storage
 
 log = logging.getLogger(__name__)
@@ -52,6 +62,7 @@ PLAN_FILE = ledger.TUNE_PLAN_FILE     # in the run's directory: what a resumed r
 CONFIGURATIONS = ledger.TUNE_CONFIGURATIONS
 TUNED = "tuned.toml"
 OBJECTIVE = "objective"
+CURVE_POINT = "curve_point"  # with ASHA: an intermediate result's curve point (from 1), ASHA's time_attr
 
 
 @dataclass
@@ -98,8 +109,57 @@ def objective_of(sweep_dir: AnyPath, units: list[dict[str, Any]], column: str) -
     return (statistics.median(values) if values else float("nan")), len(values)
 
 
+class CurveObjective:
+    """With ASHA: a configuration's intermediate objective, from its cells' curve points as they close (the
+    pipeline's on_points batches, asp_dist.training.pipeline.PointsFn). Once every cell has closed point i and
+    at least one carries a finite `key` (probe_<metric>: every 5th point and the last), it reports
+    {objective: the median of those values, curve_point: i + 1}; each point once, in order. A cell that
+    closes no more points (failed) holds the reports back: the configuration then trains to its end."""
+
+    def __init__(self, cell_ids: list[str], key: str, report: Callable[[dict[str, Any]], None]):
+        self.key, self.report = key, report
+        self.values: dict[str, list[float | None]] = {c: [] for c in cell_ids}
+        self.streamed = dict.fromkeys(cell_ids, 0)  # points of each cell passed on by this run of its unit
+        self.reported = 0  # points 0 .. reported-1 are done with
+
+    def seed(self, cell_id: str, values: list[float | None]) -> None:
+        """A cell's points as its stored curve holds them (a cell with a row is not trained again)."""
+        self.values[cell_id] = list(values)
+
+    def __call__(self, batch) -> None:
+        for spec, points in batch:
+            if spec.cell_id not in self.values:
+                continue
+            mine = self.values[spec.cell_id]
+            for point in points:  # a restored unit passes its points on from its first: overwritten in place
+                index, value = self.streamed[spec.cell_id], point.get(self.key)
+                mine[index:index + 1] = [value]
+                self.streamed[spec.cell_id] += 1
+        self.flush()
+
+    def flush(self) -> None:
+        closed = min(len(v) for v in self.values.values())
+        while self.reported < closed:
+            i = self.reported
+            self.reported += 1
+            finite = [float(v[i]) for v in self.values.values() if v[i] is not None and math.isfinite(v[i])]
+            if finite:
+                self.report({OBJECTIVE: statistics.median(finite), CURVE_POINT: i + 1})
+
+
+def _stored_curve(sweep_dir: AnyPath, spec: dict[str, Any], cell_id: str, key: str) -> list[float | None] | None:
+    from asp_dist.results.location import parquet_file
+
+    path = store.curve_path(sweep_dir, spec["domain"], spec["method"], cell_id)
+    if not path.exists():
+        return None
+    with parquet_file(path) as f:
+        return f.read(columns=[key]).column(0).to_pylist() if key in f.schema_arrow.names else None
+
+
 def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
-    """The trainable: train one configuration's cells, then report its objective."""
+    """The trainable: train one configuration's cells, then report its objective (with ASHA, also the
+    intermediate objective at its curve points: CurveObjective)."""
     import torch
 
     from asp_dist.sweep.trial import train_unit
@@ -110,11 +170,22 @@ def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
                                 plan["checkpoint_every_s"])
 
     def report(metrics: dict[str, Any], checkpoint=None) -> None:
-        # Every result carries the objective (Tune's searchers read it from each); NaN until it is known.
+        # Every result carries the objective (Tune's searchers read it from each); NaN until it is known. It
+        # carries no curve_point: ASHA passes over a result without its time_attr, so no NaN reaches a rung.
         tune.report({**metrics, OBJECTIVE: float("nan")}, checkpoint=checkpoint)
 
+    curve = None
+    if plan.get("curve_key"):  # ASHA
+        curve = CurveObjective([cid for unit in units for cid in unit["cell_ids"]], plan["curve_key"], tune.report)
+        sweep_dir = as_path(plan["sweep_dir"])
+        for unit in units:
+            for cell_id, spec in zip(unit["cell_ids"], unit["specs"]):
+                if store.is_done(sweep_dir, spec["domain"], spec["method"], cell_id):
+                    stored = _stored_curve(sweep_dir, spec, cell_id, plan["curve_key"])
+                    if stored is not None:
+                        curve.seed(cell_id, stored)
     for unit in units:
-        train_unit(unit, report)
+        train_unit(unit, report, on_points=curve)
     cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
     objective, done = objective_of(as_path(plan["sweep_dir"]), units, plan["column"])
     tune.report({OBJECTIVE: objective, "cells_done": done, "cells_failed": len(cell_ids) - done,
@@ -134,13 +205,24 @@ class TuneProgress(tune.Callback):
         return (TuneProgress, (self.name, self.method, self.budget, self.higher))
 
     def on_trial_complete(self, iteration, trials, trial, **info):
-        objective = (trial.last_result or {}).get(OBJECTIVE, float("nan"))
+        result = trial.last_result or {}
+        objective = result.get(OBJECTIVE, float("nan"))
         self.done = sum(t.status == "TERMINATED" or t is trial for t in trials)  # this one's status is set after
-        if objective == objective and (self.best is None or (objective > self.best) == self.higher):
-            self.best = objective
+        if stopped_early(result):  # ASHA stopped it: its objective is an intermediate one, never the best
+            last = f"last stopped by ASHA at curve point {result[CURVE_POINT]} (objective then {objective:.4g})"
+        else:
+            last = f"last objective {objective:.4g}"
+            if not math.isnan(objective) and (self.best is None or (objective > self.best) == self.higher):
+                self.best = objective
         best = "none yet" if self.best is None else f"{self.best:.4g}"
-        print(f"tune {self.name}: {self.method} {self.done}/{self.budget} configurations, last objective "
-              f"{objective:.4g}, best {best}", file=sys.stderr, flush=True)
+        print(f"tune {self.name}: {self.method} {self.done}/{self.budget} configurations, {last}, best {best}",
+              file=sys.stderr, flush=True)
+
+
+def stopped_early(result: dict[str, Any]) -> bool:
+    """Whether a configuration's last result is an intermediate one (ASHA stopped it there): a finished
+    configuration's last result is its final report, which counts its cells (cells_done) and has no curve point."""
+    return CURVE_POINT in result and "cells_done" not in result
 
 
 
@@ -180,6 +262,21 @@ def _searcher(plan: TunePlan, method_index: int, workers: int, search: MethodSea
                               max_concurrent=workers, batch=True), mode
 
 
+def _scheduler(plan: TunePlan, search: MethodSearch):
+    """ASHA on the configurations' curve points where the plan asks for it, else None (Tune's FIFO: every
+    configuration trains to its end). Its rungs: grace_points · reduction_factor^k up to the cells' last curve
+    point. It never stops a configuration for reaching the last point (stop_last_trials=False: the cells still
+    have to be evaluated and written)."""
+    settings = plan.settings
+    if settings.scheduler != "asha":
+        return None
+    from ray.tune.schedulers import ASHAScheduler
+
+    last = max(curve_points(c.resolved().train_steps) for c in search.cells)
+    return ASHAScheduler(time_attr=CURVE_POINT, max_t=last, grace_period=settings.grace_points,
+                         reduction_factor=settings.reduction_factor, brackets=settings.brackets, stop_last_trials=False)
+
+
 def _experiment_name(method: str) -> str:
     return f"tune-{method}"
 
@@ -191,15 +288,20 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
     info = {"method": search.method, "knobs": sorted(search.ranges), "cells": [c.to_dict() for c in search.cells],
             "sweep_dir": str(sweep_dir), "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s,
             "column": plan.objective_column, "higher_is_better": plan.higher_is_better}
+    if plan.settings.scheduler == "asha":
+        info["curve_key"] = f"probe_{plan.settings.metric}"
     trainable = tune.with_resources(tune.with_parameters(train_configuration, plan=info), {"cpu": 1})
     path = f"{storage_path}/{experiment}"
     if tune.Tuner.can_restore(path, storage_filesystem=storage_fs):
+        # The searcher and the scheduler come back as stored; finished and stopped configurations (TERMINATED)
+        # are not run again. ASHA's rungs are not part of Tune's experiment state: they restart empty.
         return tune.Tuner.restore(path, trainable=trainable, resume_unfinished=True, resume_errored=True,
                                   storage_filesystem=storage_fs)
     searcher, mode = _searcher(plan, index, workers, search)
     return tune.Tuner(
         trainable, param_space=search_space(search.ranges),
         tune_config=tune.TuneConfig(search_alg=searcher, metric=OBJECTIVE, mode=mode, num_samples=plan.settings.budget,
+                                    scheduler=_scheduler(plan, search),
                                     reuse_actors=True),  # the searcher limits concurrency to `workers`
         run_config=tune.RunConfig(name=experiment, storage_path=storage_path, storage_filesystem=storage_fs,
                                   verbose=0, failure_config=tune.FailureConfig(max_failures=max_failures),
@@ -220,7 +322,7 @@ def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
                              f"settings {stored.get('settings')}); give this one another --name")
         return
     write_replace(record, json.dumps({"name": plan.name, "space": plan.space, "domain": plan.domain,
-                                      "fingerprint": fingerprint, "settings": vars(plan.settings),
+                                      "fingerprint": fingerprint, "settings": plan.settings.record(),
                                       "ranges": {m: {k: r.to_toml() for k, r in s.ranges.items()}
                                                  for m, s in plan.searches.items()}}, indent=1))
 
@@ -241,10 +343,23 @@ def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
                                         plan.name, 30.0)
             cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
             objective, done = objective_of(sweep_dir, units, plan.objective_column)
-            records.append({"method": method, "configuration": index, "trial_id": trial.trial_id,
-                            **{f"knob_{k}": v for k, v in values.items()}, OBJECTIVE: objective,
-                            "cells": len(cell_ids), "cells_done": done, "cell_ids": ",".join(cell_ids)})
-    return pd.DataFrame.from_records(records)
+            record = {"method": method, "configuration": index, "trial_id": trial.trial_id,
+                      **{f"knob_{k}": v for k, v in values.items()}, OBJECTIVE: objective,
+                      "cells": len(cell_ids), "cells_done": done, "cell_ids": ",".join(cell_ids)}
+            if plan.settings.scheduler == "asha":
+                # A stopped configuration has no objective (no rows of its own; another configuration of the same
+                # values may have written them): its intermediate one and where ASHA stopped it instead.
+                result = trial.last_result or {}
+                stopped = trial.status == "TERMINATED" and stopped_early(result)
+                record.update({OBJECTIVE: float("nan") if stopped else objective, "stopped_early": stopped,
+                               "stopped_at_point": int(result[CURVE_POINT]) if stopped else None,
+                               "objective_at_stop": float(result[OBJECTIVE]) if stopped else None})
+            records.append(record)
+    table = pd.DataFrame.from_records(records)
+    if "stopped_at_point" in table:
+        table["stopped_at_point"] = table["stopped_at_point"].astype("Int64")
+        table["objective_at_stop"] = table["objective_at_stop"].astype(float)
+    return table
 
 
 def _trial_number(trial) -> int:
@@ -256,6 +371,8 @@ def best_configurations(plan: TunePlan, table) -> dict[str, dict[str, Any]]:
     best = {}
     for method, search in plan.searches.items():
         rows = table[(table["method"] == method) & table[OBJECTIVE].notna()]
+        if "stopped_early" in rows:  # chosen among the configurations that trained to their end only
+            rows = rows[~rows["stopped_early"].astype(bool)]
         if rows.empty:
             continue
         row = rows.loc[rows[OBJECTIVE].idxmax() if plan.higher_is_better else rows[OBJECTIVE].idxmin()]
@@ -276,12 +393,22 @@ def tuned_toml(plan: TunePlan, best: dict[str, dict[str, Any]]) -> str:
              f"# (median {plan.objective_column} over its calibration cells; search {plan.settings.search}, "
              f"budget {plan.settings.budget}, seed {plan.settings.seed}). Use it as a space's settings:",
              f'#   settings = ["{plan.name}/tuned.toml"]', ""]
+    if plan.settings.scheduler == "asha":
+        lines.insert(3, f"# {_asha(plan.settings)}: each best is among the configurations it did not stop.")
     for method, b in best.items():
         lines.append(f"[methods.{method}]  # configuration {b['index']}, objective {b[OBJECTIVE]:.6g}")
         for key, value in b["values"].items():
             lines.append(f"{key} = {json.dumps(value)}")
         lines.append("")
     return "\n".join(lines)
+
+
+def _asha(settings) -> str:
+    """ASHA's settings in words, "" without it."""
+    if settings.scheduler != "asha":
+        return ""
+    return (f"ASHA with grace_points {settings.grace_points}, reduction_factor {settings.reduction_factor:g}, "
+            f"brackets {settings.brackets}")
 
 
 def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: str | None = None,
@@ -303,7 +430,8 @@ def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: st
                          "its defaults lie outside the ranges: all searched") if plan.settings.from_defaults else ""
                 stream.write(f"tune {plan.name}: {method}: {plan.settings.budget} configurations of "
                              f"{', '.join(sorted(search.ranges))} over {len(search.cells)} cells each "
-                             f"({plan.settings.search}, seed {plan.settings.seed}{', ' + start if start else ''})\n")
+                             f"({plan.settings.search}, seed {plan.settings.seed}{', ' + start if start else ''}"
+                             f"{', ' + _asha(plan.settings) if _asha(plan.settings) else ''})\n")
             with ray_session(workers, None, ray_temp_dir, stream=stream):
                 for index, (method, search) in enumerate(plan.searches.items()):
                     _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures))
@@ -312,6 +440,10 @@ def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: st
             write_replace(sweep_dir / CONFIGURATIONS, parquet_bytes(pa.Table.from_pandas(table, preserve_index=False)))
             best = best_configurations(plan, table)
             write_replace(sweep_dir / TUNED, tuned_toml(plan, best))
+    if "stopped_early" in table:
+        stopped = table[table["stopped_early"]].groupby("method").size()
+        stream.write(f"tune {plan.name}: ASHA stopped " + ", ".join(
+            f"{stopped.get(m, 0)} of {plan.settings.budget} {m} configurations" for m in plan.searches) + " early\n")
     for method, b in best.items():
         stream.write(f"tune {plan.name}: {method}: best configuration {b['index']} "
                      f"({plan.objective_column} median {b[OBJECTIVE]:.4g}): "
