@@ -237,12 +237,17 @@ def plot_asp_effect_vs_knob(result: StatsResult, domain: str, knob: str, out_dir
     fig, axes = _panels(len(opponents))
     paired_counts = sorted(rows["paired"].unique())
     cmap = plt.get_cmap("viridis", max(2, len(paired_counts)))
+    # Each (paired, value) block of trials × treatments once, not once per pair of treatments (a tune run has
+    # dozens of treatments, each at its own values).
+    wides = {paired: [(value, g.pivot_table(index=["root_seed", "trial"], columns="treatment", values="score",
+                                            aggfunc="mean"))
+                      for value, g in rows[rows["paired"] == paired].groupby(knob, sort=True)]
+             for paired in paired_counts}
     for ax, other in zip(axes, opponents):
         for asp in asps:
             for j, paired in enumerate(paired_counts):
                 xs, meds, los, his = [], [], [], []
-                for value, g in rows[rows["paired"] == paired].groupby(knob, sort=True):
-                    wide = g.pivot_table(index=["root_seed", "trial"], columns="treatment", values="score", aggfunc="mean")
+                for value, wide in wides[paired]:
                     if asp not in wide or other not in wide:
                         continue
                     diff = sign * (wide[asp] - wide[other]).dropna().to_numpy()
