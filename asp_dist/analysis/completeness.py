@@ -16,6 +16,7 @@ from asp_dist.analysis.layout import DomainLayout, by_condition, treatment_order
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, as_path
 from asp_dist.results.query import Inputs
+from asp_dist.sweep import ledger
 
 MISSING_COLUMNS = ["sweep", "kind", "domain", "condition", "method", "paired", "trial", "cell_id", "error"]
 DESCRIBED = ("domain", "method", "paired", "trial")
@@ -30,6 +31,9 @@ def planned_cells(sweep_dir: AnyPath) -> tuple[dict[str, dict[str, Any] | None] 
     except (OSError, ValueError) as err:  # the store's SchemaError is a ValueError too
         return None, [f"{name}: manifest.json cannot be read ({err}); the planned grid is unknown"]
     if manifest is None:
+        if (as_path(sweep_dir) / ledger.TUNE_PLAN_FILE).exists():  # a tune run plans configurations, not a grid
+            return None, [f"{name}: a tune run (asp-dist tune): its cells are its configurations' "
+                          f"({ledger.TUNE_CONFIGURATIONS}); only failed cells and incomplete blocks are reported"]
         return None, [f"{name}: no manifest.json, the planned grid is unknown; "
                       "only failed cells and incomplete blocks are reported"]
     cells, specs = manifest["cells"], manifest.get("specs")
