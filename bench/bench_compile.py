@@ -442,7 +442,7 @@ def whole_step(k: int, members: str) -> dict:
         for _ in range(3):
             step()
         out["outcome"] = "ran"
-    except Exception as exc:  # noqa: BLE001 -- how it fails is the finding
+    except Exception as exc:  # noqa: BLE001 - the probe records whatever stops torch.compile
         found = re.findall(r"mutating [^.]*\.|While executing %\S+", str(exc))
         out["outcome"] = f"{type(exc).__name__}: " + " / ".join(found or [str(exc).strip()[:200]])
     out["seconds"] = time.perf_counter() - t0
