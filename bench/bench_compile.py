@@ -487,6 +487,17 @@ def recorded(pack) -> list:
     return got
 
 
+def _keep_worst(worst: dict[str, float], diffs: dict[str, float]) -> None:
+    for key, d in diffs.items():
+        worst[key] = max(worst.get(key, 0.0), d)
+
+
+def _verdict(label: str, worst: dict[str, float]) -> tuple[bool, str]:
+    """Whether every difference is within tolerance (weights after Adam: 0.1 lr, the rest TOL), and its line."""
+    good = all(d <= (0.1 if key == "weights (/lr)" else TOL) for key, d in worst.items())
+    return good, f"{label}: {'ok' if good else 'FAILED'}: " + ", ".join(f"{key} {d:.1e}" for key, d in worst.items())
+
+
 def check(variants: list[str], updates: int = 3) -> tuple[bool, list[str]]:
     """jax: one update from the torch pack's state and its own draws, `updates` times: the loss terms, the
     model's gradient, the discriminators' and the model's weights after the update and the positions against
@@ -516,12 +527,10 @@ def check(variants: list[str], updates: int = 3) -> tuple[bool, list[str]]:
                 diffs["positions"] = _rel(s.pos, pack.pos)
                 diffs["weights (/lr)"] = max(float(np.abs(np.asarray(x) - np.asarray(y)).max()) / lr for x, y in zip(
                     s.params, jp._split(pack.net.param, pack.net.grad_views)))
-                for key, d in diffs.items():
-                    worst[key] = max(worst.get(key, 0.0), d)
-            good = all(d <= (0.1 if key == "weights (/lr)" else TOL) for key, d in worst.items())
+                _keep_worst(worst, diffs)
+            good, line = _verdict(f"jax vs eager, {name}, {updates} updates", worst)
             ok &= good
-            lines.append(f"jax vs eager, {name}, {updates} updates: {'ok' if good else 'FAILED'}: "
-                         + ", ".join(f"{key} {d:.1e}" for key, d in worst.items()))
+            lines.append(line)
         for v in (v for v in variants if v.startswith("compile")):
             eager, comp = build_pack(PackedParticleTrainer, specs, data), compiled_pack(specs, data, v)
             ev, cv = recorded(eager), recorded(comp)
@@ -534,12 +543,10 @@ def check(variants: list[str], updates: int = 3) -> tuple[bool, list[str]]:
                 diffs["discriminator weights"] = _rel(comp.dnet.param, eager.dnet.param)
                 diffs["positions"] = _rel(comp.pos, eager.pos)
                 diffs["weights (/lr)"] = float((comp.net.param - eager.net.param).abs().max()) / lr
-                for key, d in diffs.items():
-                    worst[key] = max(worst.get(key, 0.0), d)
-            good = all(d <= (0.1 if key == "weights (/lr)" else TOL) for key, d in worst.items())
+                _keep_worst(worst, diffs)
+            good, line = _verdict(f"{v} vs eager, {name}, {updates} updates", worst)
             ok &= good
-            lines.append(f"{v} vs eager, {name}, {updates} updates: {'ok' if good else 'FAILED'}: "
-                         + ", ".join(f"{key} {d:.1e}" for key, d in worst.items()))
+            lines.append(line)
     return ok, lines
 
 
