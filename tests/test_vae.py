@@ -158,28 +158,31 @@ def vae_trainers(domain, base, classes, **changes):
     """Trainers of `classes` on the same spec, data and initial weights (tiny VAE, 4 paired)."""
     from asp_dist.training.methods import method_weights
 
-    spec = tiny(paired=4, **changes).resolved()
+    spec = tiny(**{"paired": 4, **changes}).resolved()
     gen = torch.Generator().manual_seed(0)
     paired = domain.paired(spec, base.agents, spec.paired, gen)
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, gen)
     return [cls(spec, domain, domain.new_agents(spec, 1), paired, unpaired, method_weights(spec)) for cls in classes]
 
 
+@pytest.mark.parametrize("fast_class", ["OnePassVAETrainer", "HandDerivedVAETrainer"])
 @pytest.mark.parametrize("changes", [
-    dict(method="osp"), dict(method="asp"), dict(method="pc"),
+    dict(method="osp"), dict(method="asp"), dict(method="pc"), dict(method="osp", paired=0),
     dict(method="asp", vae_recon_loss="mse", vae_adversary_input="z", vae_paired_reduction="mean"),
-    dict(method="asp", adversary_loss="non_saturating", disc_steps=2),
-], ids=["osp", "asp", "pc", "asp-mse-z-mean", "asp-nonsat-2disc"])
-def test_the_one_pass_update_is_the_reference_update(changes, domain, base):
-    """The fast trainer (self-play and paired rows in one batch per network) computes the
-    reference update: gradients, weights (VAE and discriminator) and loss columns equal up to float
-    rounding, the same draws. PC has nothing to merge: the reference update itself."""
-    from asp_dist.domains.vae.fast import OnePassVAETrainer
-    from asp_dist.training.engines import lone_trainer
+    dict(method="asp", adversary_loss="non_saturating", disc_steps=2, vae_kl_weight=0.3),
+    dict(method="pc", vae_recon_loss="mse", vae_paired_reduction="mean"),
+], ids=["osp", "asp", "pc", "osp-0-paired", "asp-mse-z-mean", "asp-nonsat-2disc-kl", "pc-mse-mean"])
+def test_the_fast_updates_are_the_reference_update(changes, fast_class, domain, base):
+    """Each fast lone trainer computes the reference update: gradients, weights (VAE and discriminator)
+    and loss columns equal up to float rounding, the same draws. The one-pass trainer runs self-play and
+    paired rows in one batch per network through autograd (PC has nothing to merge: the reference update
+    itself); the hand-derived one computes the same gradients in closed form."""
+    from asp_dist.domains.vae import fast, hand_derived
     from asp_dist.training.trainer import Trainer
 
-    reference, fast = vae_trainers(domain, base, (Trainer, OnePassVAETrainer), **changes)
-    assert lone_trainer(fast.spec) is OnePassVAETrainer
+    cls = getattr(fast, fast_class, None) or getattr(hand_derived, fast_class)
+    reference, fast = vae_trainers(domain, base, (Trainer, cls), **changes)
+    assert cls.supports(fast.spec)
     grads = []
     for trainer in (reference, fast):
         trainer.train_step()  # the first update's gradients, before Adam has amplified any rounding
@@ -264,3 +267,54 @@ def test_the_hand_derived_base_update_steps_like_torch_adam():
         update.step(x, torch.Generator().manual_seed(step))
         for (name, p_a), p_b in zip(a.named_parameters(), b.parameters()):
             torch.testing.assert_close(p_b, p_a, rtol=1e-5, atol=1e-6, msg=f"{name}, update {step}")
+
+
+def test_a_vae_cell_trains_on_the_hand_derived_update(domain):
+    """A sweep's lone VAE cell trains on the hand-derived update, whatever the method and paired count."""
+    from asp_dist.domains.vae.hand_derived import HandDerivedVAETrainer
+    from asp_dist.training.engines import lone_trainer
+
+    for method in ("pc", "osp", "asp"):
+        for paired in (0, 4):
+            spec = tiny(method=method, paired=paired).resolved()
+            expected = HandDerivedVAETrainer if (method, paired) != ("pc", 0) else None
+            assert (lone_trainer(spec) is HandDerivedVAETrainer) == (expected is HandDerivedVAETrainer), (method, paired)
+
+
+def test_the_hand_derived_trainer_resumes_the_reference_checkpoint(domain, base):
+    """Its state is the reference Trainer's: a reference checkpoint taken mid-training and resumed on the
+    hand-derived trainer ends where the reference ends, to float rounding."""
+    from asp_dist.domains.vae.hand_derived import HandDerivedVAETrainer
+    from asp_dist.training.trainer import Trainer
+
+    reference, resumed = vae_trainers(domain, base, (Trainer, HandDerivedVAETrainer), method="asp")
+    for _ in range(7):
+        reference.train_step()
+    resumed.load_state_dict(copy.deepcopy(reference.state_dict()))
+    while reference.step < reference.spec.train_steps:
+        reference.train_step()
+        resumed.train_step()
+    for (name, p_ref), p in zip(reference.agents.named_parameters(), resumed.agents.parameters()):
+        torch.testing.assert_close(p, p_ref, rtol=1e-4, atol=1e-5, msg=name)
+    assert torch.equal(reference.gen.get_state(), resumed.gen.get_state())
+
+
+def test_the_direct_fused_adam_step_is_torch_adams_step():
+    """hand_derived.fused_adam_step is torch.optim.Adam(fused=True).step(), bit for bit, state included; an
+    optimizer it does not cover is stepped by its own step()."""
+    from asp_dist.domains.vae.hand_derived import fused_adam_step
+
+    for options in (dict(fused=True), dict(fused=True, weight_decay=0.1), dict()):
+        a, b = torch.nn.Linear(5, 3), torch.nn.Linear(5, 3)
+        b.load_state_dict(a.state_dict())
+        opt_a, opt_b = (torch.optim.Adam(m.parameters(), lr=0.01, **options) for m in (a, b))
+        for step in range(3):
+            for m in (a, b):
+                m.zero_grad()
+                m(torch.full((2, 5), float(step + 1))).pow(2).sum().backward()
+            opt_a.step()
+            fused_adam_step(opt_b)
+        for p_a, p_b in zip(a.parameters(), b.parameters()):
+            assert torch.equal(p_a, p_b), options
+        state_a, state_b = opt_a.state_dict()["state"], opt_b.state_dict()["state"]
+        assert all(torch.equal(state_a[k][e], state_b[k][e]) for k in state_a for e in state_a[k]), options

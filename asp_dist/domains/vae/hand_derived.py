@@ -1,0 +1,202 @@
+"""The VAE cell's training update with hand-derived gradients: the fastest lone trainer of a VAE cell.
+
+OnePassVAETrainer already runs each network once per update (self-play rows and P's rows in one batch). Through
+autograd such an update still spent half its time or more outside its matmuls: the loss terms' forward values
+(needed only in the recorded windows), the autograd engine, and the elementwise kernels of each term's
+backward (bench/vae_roofline.py, docs/performance.md). This trainer computes the same gradients in closed form
+(the base's, asp_dist.domains.vae.base_update, plus the paired and adversarial terms):
+
+    self-play   w_sp · (recon + w_kl · kl)       as the base's update
+    paired      w_p · (Σ|μ(P) − enc_P|² + Σ|σ(dec(enc_P)) − rec_P|²) / (rows, or rows · width: "mean")
+    unpaired    w_u · L_u(D(fake)), fake = μ or z of the self-play rows: its gradient with respect to the
+                fake codes from autograd through the small discriminator (the discriminators' own steps are
+                the reference's Adversaries.step)
+
+Only the self-play rows carry a gradient back through the decoder's first layer (P's encodings are data),
+and no input gradient is formed for the images. The loss values are computed only for the updates whose
+losses are recorded. The model's optimiser is the reference's torch.optim.Adam (the domain's fused options)
+stepped on these gradients, so a checkpoint is the reference's (engine "autograd") and either trainer
+resumes the other's. The draws are the reference's, in its order. tests/test_vae.py holds gradients,
+weights, loss columns and draws to the reference Trainer's over a whole tiny training, for every method and
+every value of the knobs below.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from asp_dist.data.mnist import PIXELS
+from asp_dist.domains.vae.fast import OnePassVAETrainer
+from asp_dist.domains.vae.game import self_play_batch
+from asp_dist.knobs import ANY, BASE_ONLY
+from asp_dist.spec import CellSpec
+from asp_dist.training.methods import method_weights
+
+# The knob values this update implements (asp_dist.knobs): every value of every VAE knob.
+IMPLEMENTS = {
+    "vae_latent_dim": ANY, "vae_hidden": ANY, "vae_kl_weight": ANY, "vae_train_images": ANY,
+    "vae_recon_loss": ("bce", "mse"), "vae_adversary_input": ("mu", "z"), "vae_paired_reduction": ("sum", "mean"),
+    "adversary_loss": ("neg_bce", "non_saturating"),
+    "vae_base_lr": BASE_ONLY, "vae_base_batch": BASE_ONLY,
+}
+
+
+def fused_adam_step(opt: torch.optim.Optimizer) -> None:
+    """opt.step() of a fused torch.optim.Adam with one parameter group and no options beyond lr, betas and
+    eps: the same state entries and the same two kernels (the step counts' add, then torch._fused_adam_), without
+    the Python around them (≈ 0.15 ms per VAE update on the machines of docs/performance.md). Anything else
+    is stepped by opt.step() itself."""
+    (group,) = opt.param_groups if len(opt.param_groups) == 1 else (None,)
+    plain = group is not None and isinstance(opt, torch.optim.Adam) and group["fused"] and not (
+        group["amsgrad"] or group["weight_decay"] or group["maximize"] or group["capturable"]
+        or group["differentiable"] or group.get("decoupled_weight_decay") or torch.is_tensor(group["lr"]))
+    if not plain:
+        opt.step()
+        return
+    params = group["params"]
+    states = [opt.state[p] for p in params]
+    for p, state in zip(params, states):
+        if not state:  # Adam._init_group's entries for a fused group
+            state["step"] = torch.zeros((), dtype=torch.float32)
+            state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+    steps = [st["step"] for st in states]
+    torch._foreach_add_(steps, 1)
+    beta1, beta2 = group["betas"]
+    torch._fused_adam_(params, [p.grad for p in params], [st["exp_avg"] for st in states],
+                       [st["exp_avg_sq"] for st in states], [], steps, amsgrad=False, lr=group["lr"], beta1=beta1,
+                       beta2=beta2, weight_decay=0.0, eps=group["eps"], maximize=False)
+
+
+class HandDerivedVAETrainer(OnePassVAETrainer):
+    # Capabilities (asp_dist.training.engines): a lone cell; its state_dict() is the reference Trainer's.
+    implements = IMPLEMENTS
+
+    @classmethod
+    def supports(cls, spec: CellSpec) -> bool:
+        # An adversary needs self-play rows for its fake codes; without self-play or paired rows there is
+        # nothing to derive (the reference's zero loss). Such cells train on the next trainer.
+        w = method_weights(spec)
+        return spec.domain == "vae" and (w.needs_self_play or w.paired != 0.0) \
+            and (w.needs_self_play or not w.needs_adversary)
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        vae = self.agents
+        self.layers = [(m.weight, m.bias) for m in (vae.encoder[0], vae.encoder[2], vae.decoder[0], vae.decoder[2])]
+        self.params = [t for pair in self.layers for t in pair]
+        if [p.data_ptr() for p in self.params] != [p.data_ptr() for p in vae.parameters()]:
+            raise ValueError("HandDerivedVAETrainer: the VAE's parameters are not its four Linear layers")
+        self.grads = [torch.empty_like(p) for p in self.params]
+        spec, p_img = self.spec, self.paired["image"]
+        self.n_paired = len(p_img) if self.weights.paired != 0.0 else 0
+        mean = spec.vae_paired_reduction == "mean"
+        d = spec.vae_latent_dim
+        self.enc_den, self.rec_den = (self.n_paired * d, self.n_paired * PIXELS) if mean else (self.n_paired,) * 2
+
+    def train_step(self) -> None:
+        spec, w = self.spec, self.weights_now()
+        record = self.recording()
+        vals: dict[str, float] | None = {} if record else None
+        (w1, b1), (w2, b2), (w3, b3), (w4, b4) = ((wt.detach(), bs.detach()) for wt, bs in self.layers)
+        gw1, gb1, gw2, gb2, gw3, gb3, gw4, gb4 = self.grads
+        d, n_p, sp = spec.vae_latent_dim, self.n_paired, w.needs_self_play
+        paired = self.paired
+
+        # ---- forward: [self-play images; P's images] through the encoder, [z; P's encodings] through the decoder
+        x = self_play_batch(spec, self.gen) if sp else None
+        n = len(x) if sp else 0
+        X = x if not n_p else paired["image"] if not sp else torch.cat([x, paired["image"]])
+        h1 = torch.addmm(b1, X, w1.t()).clamp_(min=0)
+        enc = torch.addmm(b2, h1, w2.t())
+        if sp:
+            mu, logvar = enc[:n, :d], enc[:n, d:]
+            std = torch.exp(0.5 * logvar)
+            eps = torch.randn(mu.shape, generator=self.gen)
+            z = mu + std * eps
+        D = z if not n_p else paired["encoding"] if not sp else torch.cat([z, paired["encoding"]])
+        h3 = torch.addmm(b3, D, w3.t()).clamp_(min=0)
+        logits = torch.addmm(b4, h3, w4.t())
+        pixels = torch.sigmoid(logits)
+
+        # ---- the adversary: its steps (the reference's), then L_u's gradient with respect to the fake codes
+        unpaired_loss = disc_loss = g_fake = None
+        if self.adversaries is not None:
+            fake = (mu if spec.vae_adversary_input == "mu" else z).detach()
+            for k in range(spec.disc_steps):
+                real = {ch: u[torch.randint(len(u), (spec.unpaired_batch,), generator=self.gen)]
+                        for ch, u in self.unpaired.items()}
+                disc_loss = self.adversaries.step(real, {"latent": fake}, vals if k == 0 else None)
+            leaf = fake.requires_grad_()
+            with torch.enable_grad():
+                unpaired_loss = self.adversaries.model_loss({"latent": leaf}, spec.adversary_loss)
+                (g_fake,) = torch.autograd.grad(unpaired_loss, leaf)
+            unpaired_loss = unpaired_loss.detach()
+            g_fake.mul_(w.unpaired)
+
+        if record:  # the loss values, only where they are recorded
+            sp_loss = paired_loss = None
+            if sp:
+                if spec.vae_recon_loss == "bce":
+                    recon = F.binary_cross_entropy_with_logits(logits[:n], x, reduction="sum") / n
+                else:
+                    recon = (pixels[:n] - x).pow(2).sum() / n
+                kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(-1)).mean()
+                sp_loss = float(recon + spec.vae_kl_weight * kl)
+            if n_p:
+                paired_loss = float((enc[n:, :d] - paired["encoding"]).pow(2).sum() / self.enc_den
+                                    + (pixels[n:] - paired["recon"]).pow(2).sum() / self.rec_den)
+            total = sum(wt * v for wt, v in ((w.self_play, sp_loss), (w.paired, paired_loss),
+                                             (w.unpaired, None if unpaired_loss is None else float(unpaired_loss)))
+                        if wt != 0.0)
+            for name, value in (("self_play", sp_loss), ("paired", paired_loss), ("unpaired", unpaired_loss),
+                                ("disc", disc_loss), ("total", total)):
+                if value is not None:
+                    vals[name] = float(value)
+
+        # ---- backward through the decoder
+        g = pixels  # ∂/∂logits, in place of the pixels (not needed after this)
+        if sp:
+            if spec.vae_recon_loss == "bce":
+                g[:n].sub_(x).mul_(w.self_play / n)
+            else:
+                s = g[:n]
+                s.copy_((s - x).mul_(2.0 * w.self_play / n).mul_(1.0 - s).mul_(s))
+        if n_p:
+            s = g[n:]
+            s.copy_((s - paired["recon"]).mul_(2.0 * w.paired / self.rec_den).mul_(1.0 - s).mul_(s))
+        torch.mm(g.t(), h3, out=gw4)
+        torch.sum(g, 0, out=gb4)
+        g_h3 = torch.ops.aten.threshold_backward(torch.mm(g, w4), h3, 0.0)
+        torch.mm(g_h3.t(), D, out=gw3)
+        torch.sum(g_h3, 0, out=gb3)
+
+        # ---- into the encoder's outputs: self-play rows through z (and the KL term), P's rows from the paired term
+        g_enc = torch.zeros_like(enc) if n_p else torch.empty_like(enc)
+        if sp:
+            g_z = torch.mm(g_h3[:n], w3)
+            if g_fake is not None and spec.vae_adversary_input == "z":
+                g_z.add_(g_fake)
+            kl_scale = w.self_play * spec.vae_kl_weight / n
+            g_mu = g_enc[:n, :d]
+            torch.add(g_z, mu, alpha=kl_scale, out=g_mu)
+            if g_fake is not None and spec.vae_adversary_input == "mu":
+                g_mu.add_(g_fake)
+            torch.add(g_z.mul_(eps).mul_(std).mul_(0.5), torch.exp(logvar).sub_(1.0), alpha=0.5 * kl_scale,
+                      out=g_enc[:n, d:])
+        if n_p:
+            torch.mul(enc[n:, :d] - paired["encoding"], 2.0 * w.paired / self.enc_den, out=g_enc[n:, :d])
+        torch.mm(g_enc.t(), h1, out=gw2)
+        torch.sum(g_enc, 0, out=gb2)
+        g_h1 = torch.ops.aten.threshold_backward(torch.mm(g_enc, w2), h1, 0.0)
+        torch.mm(g_h1.t(), X, out=gw1)
+        torch.sum(g_h1, 0, out=gb1)
+
+        for p, grad in zip(self.params, self.grads):
+            p.grad = grad
+        fused_adam_step(self.opt)
+        if record:
+            self.record(vals)
+        self.step += 1
+        self.finish_curve_point()
