@@ -16,6 +16,7 @@ from packed_cases import (VAE, AdamDrift, adam_sqrt_v, disc_grad_tol, disc_param
 
 from asp_dist.domains import get_domain
 from asp_dist.domains.vae.fast import OnePassVAETrainer
+from asp_dist.domains.vae.hand_derived import HandDerivedVAETrainer
 from asp_dist.domains.vae.packed import IMPLEMENTS, PackedVAETrainer, pack_key
 from asp_dist.training.engines import lone_trainer, pack_trainer, sweep_packs
 from asp_dist.training.methods import method_weights
@@ -217,10 +218,10 @@ def test_what_can_share_a_pack():
         VAE.make_pack([spec(method="pc", paired=1), spec(method="pc", paired=1, vae_hidden=32)])
 
 
-def test_a_single_vae_cell_trains_on_the_one_pass_trainer():
+def test_a_single_vae_cell_trains_on_the_hand_derived_trainer():
     """The packed trainer is for packs only, and kept out of sweeps (measured slower: docs/performance.md):
-    a lone VAE cell keeps run_cell's one-pass trainer."""
+    a lone VAE cell keeps run_cell's hand-derived trainer."""
     s = tiny_spec("vae", method="asp", paired=2).resolved()
     assert not PackedVAETrainer.lone and not PackedVAETrainer.in_sweeps
     assert pack_trainer(s) is PackedVAETrainer and not sweep_packs(s)
-    assert lone_trainer(s) is OnePassVAETrainer
+    assert lone_trainer(s) is HandDerivedVAETrainer

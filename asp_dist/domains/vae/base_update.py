@@ -20,20 +20,17 @@ weights. The result is an ordinary VAE module.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
-
-if TYPE_CHECKING:
-    from asp_dist.domains.vae.game import VAE
+from torch import nn
 
 BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults: what the reference base trains with
 
 
 class HandDerivedBaseUpdate:
-    """One base update on `vae` in place per call of step(x, gen). The Adam state lives here."""
+    """One base update on `vae` (asp_dist.domains.vae.game.VAE) in place per call of step(x, gen). The Adam
+    state lives here."""
 
-    def __init__(self, vae: VAE, lr: float, kl_weight: float, recon_loss: str):
+    def __init__(self, vae: nn.Module, lr: float, kl_weight: float, recon_loss: str):
         if recon_loss not in ("bce", "mse"):
             raise ValueError(f"unknown vae_recon_loss {recon_loss!r}")
         enc_in, enc_out = vae.encoder[0], vae.encoder[2]
