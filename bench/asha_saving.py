@@ -21,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 
 from asp_dist.domains import get_domain
-from asp_dist.sweep.tune_plan import curve_points
+from asp_dist.sweep.tune_plan import curve_points, winning_configuration
 
 
 def _points(run: Path) -> int:
@@ -31,10 +31,7 @@ def _points(run: Path) -> int:
 
 
 def _best(table: pd.DataFrame, method: str, higher: bool) -> pd.Series:
-    rows = table[(table["method"] == method) & table["objective"].notna()]
-    if "stopped_early" in rows:
-        rows = rows[~rows["stopped_early"].astype(bool)]
-    return rows.loc[rows["objective"].idxmax() if higher else rows["objective"].idxmin()]
+    return winning_configuration(table[table["method"] == method], higher)
 
 
 def compare(full: Path, asha: Path) -> dict:

@@ -15,7 +15,9 @@ Work counted (forward + backward = 3 x forward, 2 flop per multiply-accumulate):
   theirs could run at the rate below, so the floor is the VAE's in practice.
 The floor is the work / (the one-thread matmul rate, 128x784 @ 784x512 per CPU second, measured
 here unless --rate is given) / workers. With --sweep, the sweep's span (manifest.json written → last
-cell file written, as docs/performance.md's earlier grid figures) and span / floor.
+cell file written, as docs/performance.md's earlier grid figures) and span / floor, and per domain its CPU
+time from the rows (data, training, evaluation, each base once) over the workers against its floor, and
+when its last cell was written.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 from bench_vae import base_update_flops, matmul_rate, update_flops  # noqa: E402
 
@@ -83,6 +86,27 @@ def sweep_span_s(sweep: Path) -> tuple[float, int]:
     return max(c.stat().st_mtime for c in cells) - start, len(cells)
 
 
+def domain_split(sweep: Path, floor_min: dict[str, float], workers: int) -> dict[str, dict[str, float]]:
+    """Per domain: its CPU time in the sweep's rows (training, evaluation, data and each base once) over the
+    workers, against its floor; and when its last cell was written (minutes after the manifest)."""
+    from asp_dist.results.store import read_rows
+
+    rows = read_rows(sweep)
+    start = (sweep / "manifest.json").stat().st_mtime
+    finished = pd.to_datetime(rows["finished_at"], utc=True).map(lambda t: t.timestamp()) - start
+    split = {}
+    print(f"  {'domain':10s} {'cells':>6s} {'CPU min / workers':>18s} {'floor min':>10s} {'ratio':>6s} {'last cell at':>13s}")
+    for domain, group in rows.groupby("domain"):
+        cpu = group[[c for c in ("time_data_cpu_s", "time_train_cpu_s", "time_eval_cpu_s")]].sum().sum()
+        cpu += group.drop_duplicates("base_key")["base_train_cpu_s"].sum()
+        worker_min = cpu / 60 / workers
+        split[domain] = {"cells": len(group), "cpu_min_per_worker": worker_min, "floor_min": floor_min.get(domain, 0.0),
+                         "last_cell_min": float(finished[group.index].max() / 60)}
+        print(f"  {domain:10s} {len(group):6d} {worker_min:18.1f} {split[domain]['floor_min']:10.1f} "
+              f"{worker_min / max(split[domain]['floor_min'], 1e-9):6.2f} {split[domain]['last_cell_min']:13.1f}")
+    return split
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--space", default="paper")
@@ -117,6 +141,10 @@ def main(argv: list[str] | None = None) -> int:
         span, n = sweep_span_s(args.sweep)
         out.update(sweep=str(args.sweep), span_min=span / 60, cell_files=n, span_over_floor=span / floor_s)
         print(f"{args.sweep}: {n} cells, span {span / 60:.1f} min = {span / floor_s:.2f} x the floor")
+        floor_by_domain = defaultdict(float)
+        for name, flops in work.items():
+            floor_by_domain[name.split()[0]] += flops / (rate * 1e9 * args.workers) / 60
+        out["by_domain"] = domain_split(args.sweep, floor_by_domain, args.workers)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

@@ -6,7 +6,7 @@ stands between it and its matmuls.
 
 For each update of the paper's VAE grid (latent 32, hidden 512; the base at batch 128 on the hand-derived
 update train_base runs, and on the autograd reference; a PC, an OSP and an ASP cell with 32 paired on the
-trainer a sweep picks, engines.lone_trainer):
+trainer a sweep picks, engines.lone_trainer, the hand-derived one, and on the one-pass autograd trainer):
 
 - its matrix products are captured while one update runs (a TorchDispatchMode sees every aten mm, addmm,
   bmm and baddbmm with its operands' shapes and strides: the transposed operands nn.Linear hands MKL
@@ -52,6 +52,7 @@ from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.domains.vae import VAEDomain  # noqa: E402
 from asp_dist.domains.vae.base_update import HandDerivedBaseUpdate  # noqa: E402
+from asp_dist.domains.vae.fast import OnePassVAETrainer  # noqa: E402
 from asp_dist.domains.vae.game import VAE, as_float, image_rows, train_images  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.engines import lone_trainer  # noqa: E402
@@ -161,11 +162,12 @@ def cell_updates(spec: CellSpec) -> dict[str, tuple[Callable[[], None], list[tor
         gen = torch.Generator().manual_seed(1)
         paired = domain.paired(cell, base, cell.paired, gen)
         unpaired = domain.unpaired(cell, base, cell.unpaired_size, gen)
-        trainer = lone_trainer(cell).build([cell], [paired], [unpaired], [domain.new_agents(cell, 1)])
-        params = list(trainer.agents.parameters())
-        if trainer.adversaries is not None:
-            params += list(trainer.adversaries.parameters())
-        out[method] = (trainer.train_step, params)
+        for name, cls in ((method, lone_trainer(cell)), (f"{method} (one-pass)", OnePassVAETrainer)):
+            trainer = cls.build([cell], [paired], [unpaired], [domain.new_agents(cell, 1)])
+            params = list(trainer.agents.parameters())
+            if trainer.adversaries is not None:
+                params += list(trainer.adversaries.parameters())
+            out[name] = (trainer.train_step, params)
     return out
 
 
@@ -181,7 +183,7 @@ def roofline(name: str, step: Callable[[], None], params: list[torch.Tensor], up
            "update_gflops": flop / update / 1e9, "of_shape_rate": matmuls / update,
            "adam_alone_ms": adam * 1e3, "ceiling_with_adam": matmuls / (matmuls + adam),
            "other_ms": (update - matmuls - adam) * 1e3, "parameters": sum(p.numel() for p in params)}
-    print(f"{name:16s} {row['update_ms']:6.2f} ms  {len(capture.calls):2d} matmuls {row['gflop']:.3f} GFLOP alone "
+    print(f"{name:17s} {row['update_ms']:6.2f} ms  {len(capture.calls):2d} matmuls {row['gflop']:.3f} GFLOP alone "
           f"{row['matmuls_alone_ms']:.2f} ms ({row['shape_rate_gflops']:.0f} GFLOP/s)  of shape rate "
           f"{row['of_shape_rate']:.0%}  Adam {row['adam_alone_ms']:.2f} ms -> ceiling {row['ceiling_with_adam']:.0%}  "
           f"other {row['other_ms']:.2f} ms", flush=True)

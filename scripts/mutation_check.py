@@ -108,6 +108,14 @@ MUTATIONS = (
              "asp_dist/analysis/rank_tests.py",
              "    groups = [(~zero, False)] if n > 50 else", "    groups = [(~zero, False)] if True else",
              ("tests/test_power.py -k scipys_for_that_row_alone",)),
+    Mutation("the VAE base's hand-derived update drops the reparameterisation's ½ in ∂z/∂log σ²",
+             "asp_dist/domains/vae/base_update.py",
+             "torch.add(g_z.mul_(eps).mul_(std).mul_(0.5),", "torch.add(g_z.mul_(eps).mul_(std),",
+             ("tests/test_vae.py -k hand_derived_base_update_is",)),
+    Mutation("the VAE cell's hand-derived update leaves the paired rows out of the decoder's gradient",
+             "asp_dist/domains/vae/hand_derived.py",
+             "        if n_p:\n            s = g[n:]\n", "        if False:\n            s = g[n:]\n",
+             ("tests/test_vae.py -k fast_updates",)),
 )
 
 

@@ -403,3 +403,18 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     path = space(tmp_path, f'settings = ["{sweep_dir / "tuned.toml"}"]\n'
                  + GRID.replace("first = 100, last = 101", "first = 1000, last = 1000"), "confirm.toml")
     assert [c.lr for c in expand(path) if c.method == "pc"] == [pytest.approx(tuned["pc"]["lr"])] * 2
+
+
+@pytest.mark.parametrize("higher", [True, False])
+def test_the_winning_configuration_is_the_best_finished_one_ties_to_the_lowest_index(higher):
+    """One rule for tuned.toml, the tuning report and bench/asha_saving.py: the best objective among the
+    configurations that trained to their end, ties to the lowest index whatever the table's row order."""
+    from asp_dist.sweep.tune_plan import winning_configuration
+
+    best, worse = (5.0, 1.0) if higher else (1.0, 5.0)
+    table = pd.DataFrame({"configuration": [3, 1, 2, 0, 4],
+                          "objective": [best, best, worse, float("nan"), 2 * best if higher else 0.0],
+                          "stopped_early": [False, False, False, False, True]})
+    assert int(winning_configuration(table, higher)["configuration"]) == 1  # 4 is better but was stopped
+    assert int(winning_configuration(table.drop(columns="stopped_early"), higher)["configuration"]) == 4
+    assert winning_configuration(table[table["objective"].isna()], higher) is None

@@ -160,7 +160,7 @@ def vae_trainers(domain, base, classes, **changes):
 
     spec = tiny(**{"paired": 4, **changes}).resolved()
     gen = torch.Generator().manual_seed(0)
-    paired = domain.paired(spec, base.agents, spec.paired, gen)
+    paired = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired else {}  # as the pipeline has it
     unpaired = domain.unpaired(spec, base.agents, spec.unpaired_size, gen)
     return [cls(spec, domain, domain.new_agents(spec, 1), paired, unpaired, method_weights(spec)) for cls in classes]
 
@@ -168,10 +168,11 @@ def vae_trainers(domain, base, classes, **changes):
 @pytest.mark.parametrize("fast_class", ["OnePassVAETrainer", "HandDerivedVAETrainer"])
 @pytest.mark.parametrize("changes", [
     dict(method="osp"), dict(method="asp"), dict(method="pc"), dict(method="osp", paired=0),
+    dict(method="asp", paired=0),
     dict(method="asp", vae_recon_loss="mse", vae_adversary_input="z", vae_paired_reduction="mean"),
     dict(method="asp", adversary_loss="non_saturating", disc_steps=2, vae_kl_weight=0.3),
     dict(method="pc", vae_recon_loss="mse", vae_paired_reduction="mean"),
-], ids=["osp", "asp", "pc", "osp-0-paired", "asp-mse-z-mean", "asp-nonsat-2disc-kl", "pc-mse-mean"])
+], ids=["osp", "asp", "pc", "osp-0-paired", "asp-0-paired", "asp-mse-z-mean", "asp-nonsat-2disc-kl", "pc-mse-mean"])
 def test_the_fast_updates_are_the_reference_update(changes, fast_class, domain, base):
     """Each fast lone trainer computes the reference update: gradients, weights (VAE and discriminator)
     and loss columns equal up to float rounding, the same draws. The one-pass trainer runs self-play and

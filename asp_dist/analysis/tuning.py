@@ -19,6 +19,7 @@ from asp_dist.analysis.document import Block, Heading, Table, Text
 from asp_dist.results.location import as_path
 from asp_dist.sweep.ledger import TUNE_CONFIGURATIONS as CONFIGURATIONS  # what asp-dist tune writes
 from asp_dist.sweep.ledger import TUNE_PLAN_FILE as PLAN_FILE
+from asp_dist.sweep.tune_plan import winning_configuration
 
 
 def read_configurations(result) -> pd.DataFrame:
@@ -56,10 +57,9 @@ def best_table(configs: pd.DataFrame) -> pd.DataFrame:
     asha = "stopped_early" in configs
     for (run, method), g in _scored(configs).groupby(["run", "method"], sort=False):
         scored = g[g["objective"].notna()].sort_values("configuration")
-        if scored.empty:
+        best = winning_configuration(g, bool(g["higher_is_better"].iloc[0]))
+        if best is None:
             continue
-        higher = bool(g["higher_is_better"].iloc[0])
-        best = scored.loc[scored["objective"].idxmax() if higher else scored["objective"].idxmin()]
         values = ", ".join(f"{c[5:]}={_short(best[c])}" for c in _knob_columns(g) if pd.notna(best[c]))
         first = scored[scored["configuration"] == 0]
         rows.append({"run": run, "method": method, "configurations": len(g), "best_configuration": int(best["configuration"]),

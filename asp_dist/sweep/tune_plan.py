@@ -267,3 +267,17 @@ def _method_ranges(method: str, ranges: dict[str, Range], chosen: Any, label: st
         raise SweepError(f"{label}: method {method} has nothing to tune (no knob with a range applies to it); "
                          f"declare one in [tune.ranges] or name its knobs in [tune.knobs]")
     return own
+
+
+def winning_configuration(configurations, higher_is_better: bool):
+    """The row of `configurations` (one method's rows of configurations.parquet) its search chooses: the best
+    objective among the configurations that trained to their end (ASHA's stopped ones are never chosen), ties
+    to the lowest configuration index; None when none has an objective. The one rule of tuned.toml, the
+    tuning report and bench/asha_saving.py."""
+    rows = configurations[configurations["objective"].notna()]
+    if "stopped_early" in rows:
+        rows = rows[~rows["stopped_early"].eq(True)]
+    if rows.empty:
+        return None
+    rows = rows.sort_values("configuration", kind="stable")
+    return rows.loc[rows["objective"].idxmax() if higher_is_better else rows["objective"].idxmin()]

@@ -53,7 +53,7 @@ from asp_dist.spec import CellSpec, field_type
 from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ray_host import ray_session
 from asp_dist.sweep.tune import _tune_result_logs
-from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, curve_points
+from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, curve_points, winning_configuration
 from asp_dist.sweep.tune_storage import tune_storage
 
 log = logging.getLogger(__name__)
@@ -370,12 +370,9 @@ def _trial_number(trial) -> int:
 def best_configurations(plan: TunePlan, table) -> dict[str, dict[str, Any]]:
     best = {}
     for method, search in plan.searches.items():
-        rows = table[(table["method"] == method) & table[OBJECTIVE].notna()]
-        if "stopped_early" in rows:  # chosen among the configurations that trained to their end only
-            rows = rows[~rows["stopped_early"].astype(bool)]
-        if rows.empty:
+        row = winning_configuration(table[table["method"] == method], plan.higher_is_better)
+        if row is None:
             continue
-        row = rows.loc[rows[OBJECTIVE].idxmax() if plan.higher_is_better else rows[OBJECTIVE].idxmin()]
         best[method] = {"index": int(row["configuration"]), OBJECTIVE: float(row[OBJECTIVE]),
                         "values": {k: _typed(k, row[f"knob_{k}"]) for k in search.ranges}}
     return best

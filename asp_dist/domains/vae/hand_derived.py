@@ -89,8 +89,11 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
         if [p.data_ptr() for p in self.params] != [p.data_ptr() for p in vae.parameters()]:
             raise ValueError("HandDerivedVAETrainer: the VAE's parameters are not its four Linear layers")
         self.grads = [torch.empty_like(p) for p in self.params]
-        spec, p_img = self.spec, self.paired["image"]
-        self.n_paired = len(p_img) if self.weights.paired != 0.0 else 0
+        # views of the weights outside autograd (Adam updates them in place; the views see it)
+        self.plain = [(wt.detach(), bs.detach()) for wt, bs in self.layers]
+        spec = self.spec
+        # P is {} without paired examples (the pipeline samples none), and then λ0 is 0 (method_weights)
+        self.n_paired = len(self.paired["image"]) if self.weights.paired != 0.0 else 0
         mean = spec.vae_paired_reduction == "mean"
         d = spec.vae_latent_dim
         self.enc_den, self.rec_den = (self.n_paired * d, self.n_paired * PIXELS) if mean else (self.n_paired,) * 2
@@ -99,7 +102,7 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
         spec, w = self.spec, self.weights_now()
         record = self.recording()
         vals: dict[str, float] | None = {} if record else None
-        (w1, b1), (w2, b2), (w3, b3), (w4, b4) = ((wt.detach(), bs.detach()) for wt, bs in self.layers)
+        (w1, b1), (w2, b2), (w3, b3), (w4, b4) = self.plain
         gw1, gb1, gw2, gb2, gw3, gb3, gw4, gb4 = self.grads
         d, n_p, sp = spec.vae_latent_dim, self.n_paired, w.needs_self_play
         paired = self.paired
