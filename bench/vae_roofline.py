@@ -28,7 +28,10 @@ Then the settings the question names, each measured on the same shapes in the sa
 - oneDNN's implicit bfloat16 for float32 matmuls (torch.backends.mkldnn.matmul.fp32_precision = "bf16",
   AMX or AVX-512 BF16 where the CPU has them): its speed on the largest matmul and its relative error
   against float64. Measured, not used: it changes the arithmetic the paper's results rest on.
-One thread throughout (a sweep runs one worker per core; thread settings are the sweep's).
+One thread throughout (a sweep runs one worker per core; thread settings are the sweep's), and denormals flushed
+as training flushes them (asp_dist.training.float_mode; --keep-denormals: not): Adam's decaying averages reach
+them after ~700 updates and then slow a base update by 40 %, which would make every figure depend on how
+many updates ran before it.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ from asp_dist.domains.vae.base_update import HandDerivedBaseUpdate  # noqa: E402
 from asp_dist.domains.vae.fast import OnePassVAETrainer  # noqa: E402
 from asp_dist.domains.vae.game import VAE, as_float, image_rows, train_images  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
+from asp_dist.training.float_mode import denormals_flushed  # noqa: E402
 from asp_dist.training.engines import lone_trainer  # noqa: E402
 
 aten = torch.ops.aten
@@ -249,10 +253,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--updates", type=int, default=200, help="updates per timed block")
     ap.add_argument("--blocks", type=int, default=3)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--keep-denormals", action="store_true",
+                    help="time without flushing denormals (training flushes them: asp_dist.training.float_mode)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     load_before = os.getloadavg()
     spec = CellSpec(domain="vae", paired=32, vae_latent_dim=32).resolved()
+    flushing = denormals_flushed()  # as training runs (asp_dist.training.float_mode); --keep-denormals: not
+    if not args.keep_denormals:
+        flushing.__enter__()
     updates = {**base_updates(spec), **cell_updates(spec)}
     rows = [roofline(name, step, params, args.updates, args.blocks) for name, (step, params) in updates.items()]
     result = {"machine": machine_info(), "load_before": load_before, "rows": rows,

@@ -319,3 +319,31 @@ def test_the_direct_fused_adam_step_is_torch_adams_step():
             assert torch.equal(p_a, p_b), options
         state_a, state_b = opt_a.state_dict()["state"], opt_b.state_dict()["state"]
         assert all(torch.equal(state_a[k][e], state_b[k][e]) for k in state_a for e in state_a[k]), options
+
+
+def denormal_survives() -> bool:
+    return float(torch.tensor([1e-39]) * 1.0) != 0.0
+
+
+def test_bases_and_cells_train_with_denormals_flushed_and_the_mode_is_reset_after(monkeypatch):
+    """Training flushes denormals (asp_dist.training.float_mode: Adam's decaying averages made a VAE base 40 %
+    slower once they reached them), the base's loop and the cell's alike, and leaves the thread as it was."""
+    from asp_dist.domains.vae import base_update, hand_derived
+
+    seen = {"base": [], "cell": []}
+    base_step, cell_step = base_update.HandDerivedBaseUpdate.step, hand_derived.HandDerivedVAETrainer.train_step
+
+    def watched_base_step(self, *args):
+        seen["base"].append(denormal_survives())
+        return base_step(self, *args)
+
+    def watched_cell_step(self):
+        seen["cell"].append(denormal_survives())
+        return cell_step(self)
+
+    monkeypatch.setattr(base_update.HandDerivedBaseUpdate, "step", watched_base_step)
+    monkeypatch.setattr(hand_derived.HandDerivedVAETrainer, "train_step", watched_cell_step)
+    assert denormal_survives()
+    run_cell(tiny(method="osp", paired=4))
+    assert seen["base"] and seen["cell"] and not any(seen["base"]) and not any(seen["cell"])
+    assert denormal_survives(), "the thread's mode was not reset"

@@ -16,6 +16,7 @@ from torch import nn
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
+from asp_dist.training.float_mode import denormals_flushed
 from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
 
@@ -56,7 +57,8 @@ def train_accepted_base(spec: CellSpec, progress: ProgressFn | None = None) -> B
         seed = first_seed + attempt
         steps = attempt_steps(spec.base_train_steps, spec.base_steps_growth, attempt)
         attempt_spec = spec if steps == spec.base_train_steps else spec.replace(base_train_steps=steps)
-        agents, score = domain.train_base(attempt_spec, seed, progress)
+        with denormals_flushed():
+            agents, score = domain.train_base(attempt_spec, seed, progress)
         scores.append(float(score))
         if bar is None or score >= bar:
             return BaseModel(agents=agents, key=spec.base_key, score=float(score), attempts=attempt + 1,

@@ -27,6 +27,7 @@ from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
+from asp_dist.training.float_mode import denormals_flushed
 from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
 from asp_dist.training.row import build_row
@@ -254,9 +255,10 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
         if batch:
             on_points(batch)
 
-    train_to_end(trainer, trainer.train_steps, progress, save_state if checkpoint is not None else None,
-                 checkpoint_every_s, checkpoint_every_steps,
-                 pass_on_points if on_points is not None and curves else None)
+    with denormals_flushed():
+        train_to_end(trainer, trainer.train_steps, progress, save_state if checkpoint is not None else None,
+                     checkpoint_every_s, checkpoint_every_steps,
+                     pass_on_points if on_points is not None and curves else None)
     share_wall = (time.perf_counter() - wall) / len(live)
     share_cpu = (time.process_time() - cpu) / len(live)
 
