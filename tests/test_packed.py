@@ -379,7 +379,7 @@ def test_a_cell_a_lone_trainer_cannot_honour_falls_back_with_one_log_line(domain
     trainer = engines.lone_trainer(tiny_spec(domain, method="asp", paired=2))
     if getattr(trainer, "implements", None) is None:
         pytest.skip(f"{domain}'s lone trainer runs the domain's own game functions")
-    name = next(n for n, allowed in trainer.implements.items() if allowed is ANY and n not in trainer.shared)
+    name = next(n for n, allowed in trainer.implements.items() if allowed is ANY and n not in getattr(trainer, "shared", ()))
     s = tiny_spec(domain, method="asp", paired=2).resolved()
     monkeypatch.setitem(trainer.implements, name, (getattr(s, name),))
     odd = dataclasses.replace(s, **{name: other_value(getattr(s, name))}).resolved()
@@ -392,13 +392,13 @@ def test_a_cell_a_lone_trainer_cannot_honour_falls_back_with_one_log_line(domain
 
 
 # What run_cell trains a lone cell on, per built-in domain (a plugin's packed trainer: the rule only).
-LONE = {"particles": "PackedParticleTrainer", "levers": "PackedLeverTrainer", "vae": "OnePassVAETrainer"}
+LONE = {"particles": "PackedParticleTrainer", "levers": "PackedLeverTrainer", "vae": "HandDerivedVAETrainer"}
 
 
 @pytest.mark.parametrize("domain", DOMAINS)
 def test_a_lone_cell_trains_on_the_first_lone_trainer_that_supports_it(domain):
     """run_cell's trainer (engines.lone_trainer): a one-member pack where the packed trainer says `lone`,
-    else the domain's next lone trainer (the VAE's one-pass trainer), else the reference Trainer (the
+    else the domain's next lone trainer (the VAE's hand-derived one), else the reference Trainer (the
     other checks here compare packs with whichever it is); built as the pipeline builds it, one member."""
     s = tiny_spec(domain, method="asp", paired=2).resolved()
     d, data = get_domain(domain), case_for(domain).member_data(s)

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from asp_dist.data.mnist import PIXELS
 from asp_dist.domains.vae.fast import OnePassVAETrainer
 from asp_dist.domains.vae.game import self_play_batch
-from asp_dist.knobs import ANY, BASE_ONLY
+from asp_dist.knobs import ANY, BASE_ONLY, unimplemented
 from asp_dist.spec import CellSpec
 from asp_dist.training.methods import method_weights
 
@@ -74,12 +74,24 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
     implements = IMPLEMENTS
 
     @classmethod
-    def supports(cls, spec: CellSpec) -> bool:
-        # An adversary needs self-play rows for its fake codes; without self-play or paired rows there is
-        # nothing to derive (the reference's zero loss). Such cells train on the next trainer.
+    def unsupported(cls, spec: CellSpec) -> list[str]:
+        """What of `spec` this trainer does not implement (empty: it trains it). Besides knob values: an adversary
+        needs self-play rows for its fake codes, and without self-play or paired rows there is nothing to derive
+        (the reference's zero loss); such cells train on the next trainer."""
+        spec = spec.resolved()
+        if spec.domain != "vae":
+            return [f"domain={spec.domain!r}"]
+        missing = unimplemented(cls.implements, spec)
         w = method_weights(spec)
-        return spec.domain == "vae" and (w.needs_self_play or w.paired != 0.0) \
-            and (w.needs_self_play or not w.needs_adversary)
+        if not (w.needs_self_play or w.paired != 0.0):
+            missing.append(f"method={spec.method!r} with paired={spec.paired} (nothing to learn)")
+        elif w.needs_adversary and not w.needs_self_play:
+            missing.append(f"method={spec.method!r} (an adversary without self-play)")
+        return missing
+
+    @classmethod
+    def supports(cls, spec: CellSpec) -> bool:
+        return not cls.unsupported(spec)
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
