@@ -58,8 +58,8 @@ from asp_dist.domains.vae.base_update import HandDerivedBaseUpdate  # noqa: E402
 from asp_dist.domains.vae.fast import OnePassVAETrainer  # noqa: E402
 from asp_dist.domains.vae.game import VAE, as_float, image_rows, train_images  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
-from asp_dist.training.float_mode import denormals_flushed  # noqa: E402
 from asp_dist.training.engines import lone_trainer  # noqa: E402
+from asp_dist.training.float_mode import denormals_flushed  # noqa: E402
 
 aten = torch.ops.aten
 MATMULS = {aten.mm, aten.addmm, aten.bmm, aten.baddbmm}  # every overload: .out too (torch.mm(..., out=))
