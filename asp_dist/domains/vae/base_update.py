@@ -1,7 +1,7 @@
 """The base VAE's training update with hand-derived gradients: how train_base trains a base.
 
 The bases are more than half of the paper grid's arithmetic (232 of 420 TFLOP: 5,000 updates at batch 128 for
-each of 70 bases). Through autograd an update spent 56 % of its time in its eleven matmuls and 10 % in Adam; the
+each of 70 bases). Through autograd an update spent 55 % of its time in its eleven matmuls and 10 % in Adam; the
 rest went to the loss's forward terms that no gradient needs (the base's loss value is never reported), the
 autograd engine, and small elementwise kernels (bench/vae_roofline.py, docs/performance.md). This update
 computes the same gradients in closed form:
