@@ -97,7 +97,7 @@ def domain_split(sweep: Path, floor_min: dict[str, float], workers: int) -> dict
     split = {}
     print(f"  {'domain':10s} {'cells':>6s} {'CPU min / workers':>18s} {'floor min':>10s} {'ratio':>6s} {'last cell at':>13s}")
     for domain, group in rows.groupby("domain"):
-        cpu = group[[c for c in ("time_data_cpu_s", "time_train_cpu_s", "time_eval_cpu_s")]].sum().sum()
+        cpu = group[["time_data_cpu_s", "time_train_cpu_s", "time_eval_cpu_s"]].sum().sum()
         cpu += group.drop_duplicates("base_key")["base_train_cpu_s"].sum()
         worker_min = cpu / 60 / workers
         split[domain] = {"cells": len(group), "cpu_min_per_worker": worker_min, "floor_min": floor_min.get(domain, 0.0),

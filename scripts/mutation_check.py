@@ -114,7 +114,7 @@ MUTATIONS = (
              ("tests/test_vae.py -k hand_derived_base_update_is",)),
     Mutation("the VAE cell's hand-derived update leaves the paired rows out of the decoder's gradient",
              "asp_dist/domains/vae/hand_derived.py",
-             "        if n_p:\n            s = g[n:]\n", "        if False:\n            s = g[n:]\n",
+             "        if n_p:\n            s = pixels[n:]\n", "        if False:\n            s = pixels[n:]\n",
              ("tests/test_vae.py -k fast_updates",)),
 )
 

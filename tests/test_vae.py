@@ -301,9 +301,9 @@ def test_the_hand_derived_trainer_resumes_the_reference_checkpoint(domain, base)
 
 
 def test_the_direct_fused_adam_step_is_torch_adams_step():
-    """hand_derived.fused_adam_step is torch.optim.Adam(fused=True).step(), bit for bit, state included; an
+    """base_update.fused_adam_step is torch.optim.Adam(fused=True).step(), bit for bit, state included; an
     optimizer it does not cover is stepped by its own step()."""
-    from asp_dist.domains.vae.hand_derived import fused_adam_step
+    from asp_dist.domains.vae.base_update import fused_adam_step
 
     for options in (dict(fused=True), dict(fused=True, weight_decay=0.1), dict()):
         a, b = torch.nn.Linear(5, 3), torch.nn.Linear(5, 3)

@@ -27,6 +27,17 @@ import torch
 import torch.nn.functional as F
 
 from asp_dist.data.mnist import PIXELS
+from asp_dist.domains.vae.base_update import (
+    code_grads,
+    decode,
+    decoder_backward,
+    encode,
+    encoder_backward,
+    fused_adam_step,
+    linear_layers,
+    recon_grad_,
+    sample,
+)
 from asp_dist.domains.vae.fast import OnePassVAETrainer
 from asp_dist.domains.vae.game import self_play_batch
 from asp_dist.knobs import ANY, BASE_ONLY, unimplemented
@@ -40,33 +51,6 @@ IMPLEMENTS = {
     "adversary_loss": ("neg_bce", "non_saturating"),
     "vae_base_lr": BASE_ONLY, "vae_base_batch": BASE_ONLY,
 }
-
-
-def fused_adam_step(opt: torch.optim.Optimizer) -> None:
-    """opt.step() of a fused torch.optim.Adam with one parameter group and no options beyond lr, betas and
-    eps: the same state entries and the same two kernels (the step counts' add, then torch._fused_adam_), without
-    the Python around them (≈ 0.15 ms per VAE update on the machines of docs/performance.md). Anything else
-    is stepped by opt.step() itself."""
-    (group,) = opt.param_groups if len(opt.param_groups) == 1 else (None,)
-    plain = group is not None and isinstance(opt, torch.optim.Adam) and group["fused"] and not (
-        group["amsgrad"] or group["weight_decay"] or group["maximize"] or group["capturable"]
-        or group["differentiable"] or group.get("decoupled_weight_decay") or torch.is_tensor(group["lr"]))
-    if not plain:
-        opt.step()
-        return
-    params = group["params"]
-    states = [opt.state[p] for p in params]
-    for p, state in zip(params, states):
-        if not state:  # Adam._init_group's entries for a fused group
-            state["step"] = torch.zeros((), dtype=torch.float32)
-            state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-            state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-    steps = [st["step"] for st in states]
-    torch._foreach_add_(steps, 1)
-    beta1, beta2 = group["betas"]
-    torch._fused_adam_(params, [p.grad for p in params], [st["exp_avg"] for st in states],
-                       [st["exp_avg_sq"] for st in states], [], steps, amsgrad=False, lr=group["lr"], beta1=beta1,
-                       beta2=beta2, weight_decay=0.0, eps=group["eps"], maximize=False)
 
 
 class HandDerivedVAETrainer(OnePassVAETrainer):
@@ -95,14 +79,9 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        vae = self.agents
-        self.layers = [(m.weight, m.bias) for m in (vae.encoder[0], vae.encoder[2], vae.decoder[0], vae.decoder[2])]
-        self.params = [t for pair in self.layers for t in pair]
-        if [p.data_ptr() for p in self.params] != [p.data_ptr() for p in vae.parameters()]:
-            raise ValueError("HandDerivedVAETrainer: the VAE's parameters are not its four Linear layers")
+        self.layers = linear_layers(self.agents)
+        self.params = list(self.agents.parameters())
         self.grads = [torch.empty_like(p) for p in self.params]
-        # views of the weights outside autograd (Adam updates them in place; the views see it)
-        self.plain = [(wt.detach(), bs.detach()) for wt, bs in self.layers]
         spec = self.spec
         # P is {} without paired examples (the pipeline samples none), and then λ0 is 0 (method_weights)
         self.n_paired = len(self.paired["image"]) if self.weights.paired != 0.0 else 0
@@ -114,8 +93,6 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
         spec, w = self.spec, self.weights_now()
         record = self.recording()
         vals: dict[str, float] | None = {} if record else None
-        (w1, b1), (w2, b2), (w3, b3), (w4, b4) = self.plain
-        gw1, gb1, gw2, gb2, gw3, gb3, gw4, gb4 = self.grads
         d, n_p, sp = spec.vae_latent_dim, self.n_paired, w.needs_self_play
         paired = self.paired
 
@@ -123,16 +100,11 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
         x = self_play_batch(spec, self.gen) if sp else None
         n = len(x) if sp else 0
         X = x if not n_p else paired["image"] if not sp else torch.cat([x, paired["image"]])
-        h1 = torch.addmm(b1, X, w1.t()).clamp_(min=0)
-        enc = torch.addmm(b2, h1, w2.t())
+        h1, enc = encode(self.layers, X)
         if sp:
-            mu, logvar = enc[:n, :d], enc[:n, d:]
-            std = torch.exp(0.5 * logvar)
-            eps = torch.randn(mu.shape, generator=self.gen)
-            z = mu + std * eps
+            mu, logvar, std, eps, z = sample(enc[:n], d, self.gen)
         D = z if not n_p else paired["encoding"] if not sp else torch.cat([z, paired["encoding"]])
-        h3 = torch.addmm(b3, D, w3.t()).clamp_(min=0)
-        logits = torch.addmm(b4, h3, w4.t())
+        h3, logits = decode(self.layers, D)
         pixels = torch.sigmoid(logits)
 
         # ---- the adversary: its steps (the reference's), then L_u's gradient with respect to the fake codes
@@ -170,43 +142,26 @@ class HandDerivedVAETrainer(OnePassVAETrainer):
                 if value is not None:
                     vals[name] = float(value)
 
-        # ---- backward through the decoder
-        g = pixels  # ∂/∂logits, in place of the pixels (not needed after this)
+        # ---- backward through the decoder (∂/∂logits in place of the pixels, not needed after this)
         if sp:
-            if spec.vae_recon_loss == "bce":
-                g[:n].sub_(x).mul_(w.self_play / n)
-            else:
-                s = g[:n]
-                s.copy_((s - x).mul_(2.0 * w.self_play / n).mul_(1.0 - s).mul_(s))
+            recon_grad_(pixels[:n], x, w.self_play / n, spec.vae_recon_loss)
         if n_p:
-            s = g[n:]
+            s = pixels[n:]
             s.copy_((s - paired["recon"]).mul_(2.0 * w.paired / self.rec_den).mul_(1.0 - s).mul_(s))
-        torch.mm(g.t(), h3, out=gw4)
-        torch.sum(g, 0, out=gb4)
-        g_h3 = torch.ops.aten.threshold_backward(torch.mm(g, w4), h3, 0.0)
-        torch.mm(g_h3.t(), D, out=gw3)
-        torch.sum(g_h3, 0, out=gb3)
+        g_h3 = decoder_backward(self.layers, self.grads, pixels, h3, D)
 
         # ---- into the encoder's outputs: self-play rows through z (and the KL term), P's rows from the paired term
         g_enc = torch.zeros_like(enc) if n_p else torch.empty_like(enc)
         if sp:
-            g_z = torch.mm(g_h3[:n], w3)
+            g_z = torch.mm(g_h3[:n], self.layers[2][0])
             if g_fake is not None and spec.vae_adversary_input == "z":
                 g_z.add_(g_fake)
-            kl_scale = w.self_play * spec.vae_kl_weight / n
-            g_mu = g_enc[:n, :d]
-            torch.add(g_z, mu, alpha=kl_scale, out=g_mu)
+            code_grads(g_z, mu, logvar, std, eps, w.self_play * spec.vae_kl_weight / n, g_enc[:n])
             if g_fake is not None and spec.vae_adversary_input == "mu":
-                g_mu.add_(g_fake)
-            torch.add(g_z.mul_(eps).mul_(std).mul_(0.5), torch.exp(logvar).sub_(1.0), alpha=0.5 * kl_scale,
-                      out=g_enc[:n, d:])
+                g_enc[:n, :d].add_(g_fake)
         if n_p:
             torch.mul(enc[n:, :d] - paired["encoding"], 2.0 * w.paired / self.enc_den, out=g_enc[n:, :d])
-        torch.mm(g_enc.t(), h1, out=gw2)
-        torch.sum(g_enc, 0, out=gb2)
-        g_h1 = torch.ops.aten.threshold_backward(torch.mm(g_enc, w2), h1, 0.0)
-        torch.mm(g_h1.t(), X, out=gw1)
-        torch.sum(g_h1, 0, out=gb1)
+        encoder_backward(self.layers, self.grads, g_enc, h1, X)
 
         for p, grad in zip(self.params, self.grads):
             p.grad = grad
