@@ -246,6 +246,14 @@ def hold_a_running_cell_at_its_checkpoint(read_state, checkpoint_exists, done, r
     raise AssertionError(f"no running cell with a checkpoint in Tune's state within {seconds:g} s")
 
 
+def finished_row(spec, **values: Any) -> dict[str, Any]:
+    """A result row made by hand (no training) that the store counts as finished: the spec's columns, its cell id
+    and every metric a row must have finite (0.5 each unless `values` say otherwise)."""
+    from asp_dist.domains.contract import REQUIRED_METRICS
+
+    return {**spec.to_dict(), "cell_id": spec.cell_id, **{f"eval_{m}": 0.5 for m in REQUIRED_METRICS}, **values}
+
+
 def fingerprint(root: Path) -> dict[str, str | None]:
     """path -> content hash of every file under `root` (None for a directory): "nothing was written"."""
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None

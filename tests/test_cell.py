@@ -7,6 +7,7 @@ import pytest
 import torch
 from checkpoints import checkpoint_sink
 
+from asp_dist.training import artefacts
 from asp_dist.spec import FIELD_NAMES
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.training.cell import run_cell
@@ -36,7 +37,7 @@ def test_whole_cell_is_deterministic(tiny_signaling):
 
 
 def test_shared_base_gives_the_same_row_as_training_it(tiny_signaling):
-    base = base_from_bytes(base_to_bytes(train_accepted_base(tiny_signaling)))
+    base = base_from_bytes(base_to_bytes(train_accepted_base(tiny_signaling)), tiny_signaling)
     assert comparable(run_cell(tiny_signaling, base=base)) == comparable(run_cell(tiny_signaling))
 
 
@@ -54,7 +55,7 @@ def test_restore_mid_cell_gives_the_uninterrupted_row(tiny_signaling, method):
     uninterrupted = run_cell(spec, checkpoint=keep, checkpoint_every_steps=20)
     assert len(saved) == 2  # steps 20 and 40 of 60
     for blob in saved:
-        state = torch.load(io.BytesIO(blob), weights_only=False)
+        state = artefacts.from_bytes(blob, "checkpoint")
         resumed = run_cell(spec, restore=state)
         assert resumed["resumed_from_step"] == state["trainer"]["step"]
         assert comparable(resumed) == comparable(uninterrupted)
@@ -65,7 +66,7 @@ def test_a_checkpoint_from_before_engines_were_named_still_restores(tiny_signali
     saved, keep = checkpoint_sink()
 
     uninterrupted = run_cell(tiny_signaling, checkpoint=keep, checkpoint_every_steps=30)
-    state = torch.load(io.BytesIO(saved[0]), weights_only=False)
+    state = artefacts.from_bytes(saved[0], "checkpoint")
     assert state["engine"] == "autograd" and state["cell_ids"] == [tiny_signaling.resolved().cell_id]
     old = {"version": 1, "cell_id": state["cell_ids"][0], "trainer": state["trainer"], "timings": state["timings"][0]}
     resumed = run_cell(tiny_signaling, restore=old)
@@ -79,7 +80,7 @@ def test_a_reference_checkpoint_with_its_sums_by_name_still_restores(tiny_signal
     saved, keep = checkpoint_sink()
     curve: list = []
     uninterrupted = run_cell(spec, checkpoint=keep, checkpoint_every_steps=959, curve=curve)
-    state = torch.load(io.BytesIO(saved[0]), weights_only=False)
+    state = artefacts.from_bytes(saved[0], "checkpoint")
     trainer = dict(state["trainer"])
     records = trainer.pop("records")
     assert records["loss_count"] == 59 and records["curve_count"] == 1  # inside both windows

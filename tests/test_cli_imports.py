@@ -52,7 +52,9 @@ def results(tmp_path_factory) -> Path:
     specs = [CellSpec(domain="signaling", method=m, paired=1).resolved() for m in ("pc", "osp", "asp")]
     sweep_dir = root / "tiny"
     store.write_manifest(sweep_dir, ledger.new_manifest("tiny", "smoke", specs))
-    row = {**specs[0].to_dict(), "cell_id": specs[0].cell_id, "eval_mixed": 0.75}
+    from harness import finished_row
+
+    row = finished_row(specs[0], eval_mixed=0.75)
     assert store.write_row(sweep_dir, row, sweep_id="tiny")
     return root
 

@@ -24,11 +24,44 @@ def test_contract(domain, tiny):
     check_domain(domain, tiny(domain.name, method="asp", paired=4))
 
 
+@pytest.mark.parametrize("bad, says", [(float("nan"), "metric 'mixed' is NaN"), (float("-inf"), "metric 'mixed' is -inf"),
+                                       (None, "metric 'mixed' is missing")], ids=["nan", "inf", "missing"])
+def test_the_contract_names_a_metric_that_is_not_finite(monkeypatch, capsys, tiny, bad, says):
+    """check_domain (and `asp-dist check-domain`) says which metric is NaN, not "same seed gave different
+    metrics" (NaN != NaN); a cell of that domain fails with the same words and writes no row."""
+    from asp_dist.domains.contract import ContractError
+    from asp_dist.training.row import InvalidRow
+
+    domain = DOMAINS["signaling"]
+    evaluate = domain.evaluate
+
+    def broken(*args):
+        metrics = dict(evaluate(*args))
+        metrics.pop("mixed") if bad is None else metrics.update(mixed=bad)
+        return metrics
+
+    monkeypatch.setattr(domain, "evaluate", broken)
+    spec = tiny("signaling", method="asp", paired=2)
+    if bad is not None:
+        with pytest.raises(ContractError, match=f"evaluate: {says}"):
+            check_domain(domain, spec)
+    with pytest.raises(InvalidRow, match=f"signaling evaluate gave no valid row: {says}.*; no row written$"):
+        run_cell(spec)
+    # `asp-dist cell`: one line, exit 1 (the cell ran and failed, as in a sweep), no row printed or written
+    from asp_dist.cli import main
+
+    capsys.readouterr()
+    assert main(["cell", "--domain", "signaling", "--method", "asp", "--paired", "2", "--quiet"]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.splitlines()) == 1 and f"failed: InvalidRow: signaling evaluate gave no valid " \
+        f"row: {says}" in err, err
+
+
 @domains
 def test_base_and_agents_round_trip(domain, tiny):
     spec = tiny(domain.name, paired=2).resolved()
     base = train_accepted_base(spec)
-    loaded = base_from_bytes(base_to_bytes(base))
+    loaded = base_from_bytes(base_to_bytes(base), spec)
     assert (loaded.key, loaded.score, loaded.seed) == (base.key, base.score, base.seed)
     assert_same_params(base.agents, loaded.agents, "base round trip")
     agents = domain.new_agents(spec, 11)

@@ -13,6 +13,7 @@ import torch
 from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 
+from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.domains.levers import (
     AGENTS,
@@ -181,7 +182,7 @@ def test_restored_cell_equals_the_uninterrupted_one(base):
     saved, keep = checkpoint_sink()
 
     full = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=7)
-    resumed = run_cell(spec, base=base, restore=torch.load(io.BytesIO(saved[0]), weights_only=False))
+    resumed = run_cell(spec, base=base, restore=artefacts.from_bytes(saved[0], "checkpoint"))
     assert resumed["resumed_from_step"] == 7
     assert {k: v for k, v in comparable(resumed).items() if k != "resumed_from_step"} == \
         {k: v for k, v in comparable(full).items() if k != "resumed_from_step"}

@@ -33,8 +33,8 @@ import pyarrow.parquet as pq
 import pytest
 import ray
 from budgets import TINY, tiny_spec
-from harness import (checkpointed_running_trials, clean, cli, env, expected_rows, kill_group, newest_state, s3_env,
-                     start_moto, stop_now)
+from harness import (checkpointed_running_trials, clean, cli, env, expected_rows, finished_row, kill_group,
+                     newest_state, s3_env, start_moto, stop_now)
 from packed_cases import DOMAINS as PACKED_DOMAINS
 from packed_cases import trainer_class
 
@@ -235,9 +235,9 @@ def test_rows_without_the_pack_column_still_read(tmp_path):
     """Files written before the `pack` column existed read beside new ones: null there, strict reader included."""
     spec = CellSpec(domain="signaling", method="asp", paired=2, **TINY["signaling"]).resolved()
     other = spec.replace(method="pc").resolved()
-    new_row = {**spec.to_dict(), "cell_id": spec.cell_id, "eval_mixed": 0.5, "pack": "signaling/trial-0/x/1of1-k2"}
+    new_row = finished_row(spec, pack="signaling/trial-0/x/1of1-k2")
     assert store.write_row(tmp_path, new_row, sweep_id="exp")
-    old = pa.Table.from_pylist([{**other.to_dict(), "cell_id": other.cell_id, "eval_mixed": 0.25, "sweep_id": "old"}],
+    old = pa.Table.from_pylist([finished_row(other, eval_mixed=0.25, sweep_id="old")],
                                schema=pa.schema([f for f in row_schema("signaling") if f.name != "pack"]))
     path = store.cell_path(tmp_path, other.domain, other.method, other.cell_id)
     path.parent.mkdir(parents=True)
@@ -442,7 +442,7 @@ def test_progress_and_failures_count_cells_not_packs(tmp_path):
     sweep_dir = tmp_path / "exp"
     pack, single = next(u for u in units if u.pack_id), next(u for u in units if u.pack_id is None)
     done_member = pack.specs[0]
-    store.write_row(sweep_dir, {**done_member.to_dict(), "cell_id": done_member.cell_id, "eval_mixed": 0.5}, "exp")
+    store.write_row(sweep_dir, finished_row(done_member), "exp")
     grid = {s.cell_id: f"{s.domain}/{s.method}" for s in specs}
     counter = SweepCounter("exp", grid, {done_member.cell_id}, stream=io.StringIO())
     callback = sweep_tune.SweepCallback(str(sweep_dir), "exp", grid, counter)

@@ -19,6 +19,7 @@ from checkpoints import checkpoint_sink
 from packed_cases import (DOMAINS, AdamDrift, adam_sqrt_v, case_for, disc_grad_tol, disc_params, flat_grads,
                           flat_params, float32_tol, lone, other_value, packed_module, stacked_sqrt_v, trainer_class)
 
+from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.knobs import ANY, Knob
 from asp_dist.training import engines
@@ -181,7 +182,7 @@ def test_run_pack_restored_mid_run_gives_the_rows_of_an_uninterrupted_run(tiny_r
     steps = TINY[domain]["train_steps"]
     # the last checkpoint that falls inside a chunk of draws (what a sweep restores from, mostly)
     at = max(k for k in range(EVERY, steps, EVERY) if k % TINY_CHUNK)
-    state = torch.load(io.BytesIO(states[at // EVERY - 1]), weights_only=False)
+    state = artefacts.from_bytes(states[at // EVERY - 1], "checkpoint")
     assert state["cell_ids"] == [s.resolved().cell_id for s in specs] and state["trainer"]["step"] == at
     resumed = run_pack(specs, bases=tiny_run["bases"], curves=True, restore=state)
     for a, b in zip(tiny_run["results"], resumed):
@@ -192,7 +193,7 @@ def test_run_pack_restored_mid_run_gives_the_rows_of_an_uninterrupted_run(tiny_r
 
 def test_run_pack_refuses_a_checkpoint_of_another_pack(tiny_run):
     specs, bases = tiny_run["specs"], tiny_run["bases"]
-    state = torch.load(io.BytesIO(tiny_run["states"][0]), weights_only=False)
+    state = artefacts.from_bytes(tiny_run["states"][0], "checkpoint")
     with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
         run_pack(specs[:2], bases=bases, restore=state)
     with pytest.raises(ValueError, match="checkpoint belongs to a pack of"):
@@ -324,7 +325,7 @@ def test_restore_mid_pack_continues_bit_for_bit(domain, monkeypatch):
     buf = io.BytesIO()
     torch.save(first.state_dict(), buf)
     resumed = case.make_pack(specs, data)
-    resumed.load_state_dict(torch.load(io.BytesIO(buf.getvalue()), weights_only=False))
+    resumed.load_state_dict(artefacts.from_bytes(buf.getvalue(), "checkpoint"))
     for _ in range(17):
         resumed.train_step()
     for net in ("net", "dnet"):

@@ -15,6 +15,7 @@ from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 from packed_cases import PARTICLES, AdamDrift, adam_sqrt_v, disc_grad_tol, flat_grads, flat_params, float32_tol, lone
 
+from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import train_accepted_base
@@ -144,7 +145,7 @@ def test_a_checkpoint_of_another_engine_starts_the_cell_over():
     saved, keep = checkpoint_sink()
 
     row = run_cell(spec, base=base, checkpoint=keep, checkpoint_every_steps=15)
-    states = [torch.load(io.BytesIO(b), weights_only=False) for b in saved]
+    states = [artefacts.from_bytes(b, "checkpoint") for b in saved]
     # (that the cell's own checkpoints restore bit for bit: tests/test_particles.py)
     assert [s["engine"] for s in states] == ["PackedParticleTrainer"] * 2
     # A version-1 checkpoint of the fused kernel: a Trainer-shaped state with FlatAdam's optimiser state.

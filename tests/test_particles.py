@@ -8,6 +8,7 @@ import pytest
 import torch
 from budgets import tiny_spec
 
+from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.domains.particles import BOX, MOVES, NEAR_REWARD, POOL, ParticleAgents, a2c_update, env_step, target_for
 from asp_dist.spec import CellSpec, SpecError
@@ -101,7 +102,7 @@ def test_cell_is_deterministic_and_restorable():
             saved["mid"] = buf.getvalue()
 
     run_cell(spec, base=base, checkpoint=keep_first, checkpoint_every_steps=15)
-    row_c = run_cell(spec, base=base, restore=torch.load(io.BytesIO(saved["mid"]), weights_only=False))
+    row_c = run_cell(spec, base=base, restore=artefacts.from_bytes(saved["mid"], "checkpoint"))
     assert row_c["resumed_from_step"] == 15
     assert {k: v for k, v in comparable(row_c).items() if k != "resumed_from_step"} == \
            {k: v for k, v in comparable(row_a).items() if k != "resumed_from_step"}

@@ -8,6 +8,7 @@ import os
 
 import pandas as pd
 import pytest
+from harness import finished_row
 from test_stats import make_rows, write_sweep
 
 from asp_dist.cli import main
@@ -192,7 +193,7 @@ def planted(tmp_path):
     store.write_manifest(sweep, new_manifest("exp", "smoke", specs))
     genuine = []
     for spec in specs[:2]:
-        store.write_row(sweep, {**spec.to_dict(), "cell_id": spec.cell_id, "eval_mixed": 0.5}, sweep_id="exp")
+        store.write_row(sweep, finished_row(spec), sweep_id="exp")
         genuine.append(store.cell_path(sweep, spec.domain, spec.method, spec.cell_id))
     first, other = genuine[0], specs[2]
     cells = store.cells_dir(sweep)

@@ -436,6 +436,30 @@ def test_two_workers_racing_for_one_base_train_it_once(s3, on_s3):
     assert stored == [base_path(bases_dir, key).key]
 
 
+def test_a_base_planted_in_the_bucket_runs_nothing_and_is_set_aside_and_trained_again(s3, on_s3, tmp_path, capsys):
+    """A shared bucket is where a planted base would be met: read as plain tensors, refused in one line, moved
+    under damaged/ in the bucket, trained again and stored with a conditional PUT."""
+    from planted import torch_pickle
+
+    from asp_dist.results.location import as_path
+    from asp_dist.spec import CellSpec
+    from asp_dist.sweep.base_cache import base_path, get_base
+    from asp_dist.training.bases import base_from_bytes
+
+    spec = CellSpec(domain="signaling", method="asp", trial=5).resolved()
+    bases_dir = as_path(on_s3) / "bases"
+    planted = torch_pickle(tmp_path / "ran")
+    base_path(bases_dir, spec.base_key).write_bytes(planted)
+    base, cached = get_base(spec, bases_dir)
+    assert not (tmp_path / "ran").exists(), "the planted base ran its code"
+    assert not cached and base.key == spec.base_key
+    assert base_from_bytes(base_path(bases_dir, spec.base_key).read_bytes(), spec).key == spec.base_key
+    (kept,) = [k for k in keys(s3, on_s3 + "/damaged/") if k.endswith(f"/bases/{spec.base_key}.pt")]
+    assert s3.client.get_object(Bucket=BUCKET, Key=kept)["Body"].read() == planted
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "refused unread" in lines[0] and "trained again" in lines[0], lines
+
+
 # ---- bad input: one line, exit 2, nothing written -------------------------------------------------------
 COMMANDS = (["sweep", "smoke", "--name", "exp"], ["resume", "exp"], ["status", "exp"],
             ["query", "exp", "--sql", "SELECT 1"], ["stats", "exp", "--no-figures", "--quiet"])

@@ -52,6 +52,7 @@ def make_rows(domain: str = "signaling", methods=("pc", "osp", "asp"), paired=(0
                         "cell_id": f"{domain}-{m}-p{p}-t{t}-{kv_text or 'x'}",
                         "eval_mixed": value if higher else -value,
                         "eval_self_play_base": 3.0 if higher else 0.0,
+                        "eval_self_play_new": 2.0 if higher else 1.0,  # a finished row has every required metric
                         "eval_mixed_higher_is_better": higher,
                         "metric_directions": json.dumps({"mixed": "higher" if higher else "lower"}),
                         "figure_data": None, "sweep_id": sweep_id,

@@ -122,6 +122,16 @@ def test_failures_and_manifest_roundtrip(tmp_path):
         store.read_manifest(tmp_path)
 
 
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", '{"times_failed": "many"}', "\udcff"])
+def test_a_failure_record_that_is_not_one_still_marks_its_cell_failed_and_stops_no_reader(tmp_path, text):
+    (tmp_path / store.FAILED_DIR).mkdir()
+    (tmp_path / store.FAILED_DIR / "c1.json").write_text(text, errors="surrogateescape")
+    record = store.failed_cells(tmp_path)["c1"]
+    assert store.last_error_line(record)
+    store.record_failure(tmp_path, "c1", "signaling", "pc", "boom")
+    assert store.failed_cells(tmp_path)["c1"]["times_failed"] == 1
+
+
 def test_layout_lookup_and_finished_files(tmp_path, rows):
     sweep = tmp_path / "results" / "exp"
     store.write_row(sweep, rows[0], sweep_id="exp")
@@ -215,12 +225,15 @@ def test_damaged_cell_files_are_found_and_set_aside_and_valid_ones_never_touched
     name is found and moved, with its curve, into damaged/<time>/; valid files, stray files and temp files are
     left alone. (End to end, with the cells trained again: tests/test_sweep.py, tests/test_s3.py.)"""
     extra = [dict(rows[0], cell_id=f"{rows[0]['cell_id']}-{i}") for i in range(4)]
+    # rows that older code wrote (or anyone planted) without a finished evaluation: not done either
+    extra += [dict(rows[0], cell_id=f"{rows[0]['cell_id']}-nan", eval_mixed=float("nan")),
+              dict(rows[0], cell_id=f"{rows[0]['cell_id']}-null", eval_self_play_new=None)]
     grid = {r["cell_id"]: (r["domain"], r["method"]) for r in rows + extra}
     for row in rows + extra:
         store.write_curve(tmp_path, row, [{"step": 1.0}])
         assert store.write_row(tmp_path, row, "s")
     paths = {r["cell_id"]: store.cell_path(tmp_path, r["domain"], r["method"], r["cell_id"]) for r in rows + extra}
-    cut, empty, wrong, dangling = (paths[r["cell_id"]] for r in extra)
+    cut, empty, wrong, dangling, nan, null = (paths[r["cell_id"]] for r in extra)
     cut.write_bytes(cut.read_bytes()[:100])
     empty.write_bytes(b"")
     wrong.write_bytes(paths[rows[1]["cell_id"]].read_bytes())
@@ -228,17 +241,21 @@ def test_damaged_cell_files_are_found_and_set_aside_and_valid_ones_never_touched
     dangling.symlink_to(tmp_path / "nowhere")
     stray = cut.with_name("not-in-the-grid.parquet")
     stray.write_bytes(b"junk")
-    valid = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in paths.values() if p not in (cut, empty, wrong, dangling)}
+    valid = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in paths.values()
+             if p not in (cut, empty, wrong, dangling, nan, null)}
 
     found = store.damaged_cells(tmp_path, grid)
     assert set(found) == {r["cell_id"] for r in extra}
     assert "cannot be read as Parquet" in found[cut.stem][1] and "cannot be read as Parquet" in found[empty.stem][1]
     assert f"holds cell {rows[1]['cell_id']!r}" in found[wrong.stem][1]
     assert found[dangling.stem][1] == "is a symbolic link to nothing"
+    assert found[nan.stem][1] == "has eval_mixed = nan; it is not a finished row"
+    assert found[null.stem][1] == "has eval_self_play_new = None; it is not a finished row"
     assert not any(store.is_done(tmp_path, *grid[c], c) for c in found)
+    assert set(store.read_rows(tmp_path)["cell_id"]) == {r["cell_id"] for r in rows}
 
     moved = store.set_aside_damaged(tmp_path, grid)
-    assert sorted(old for old, _, _ in moved) == sorted([cut, empty, wrong, dangling])
+    assert sorted(old for old, _, _ in moved) == sorted([cut, empty, wrong, dangling, nan, null])
     for old, new, _ in moved:
         assert not os.path.lexists(old) and os.path.lexists(new)
         assert new.relative_to(tmp_path).parts[0] == store.DAMAGED_DIR

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 
 import pytest
+from harness import finished_row
 
 from asp_dist.cli import main
 from asp_dist.results import store
@@ -38,7 +39,7 @@ def started_sweep(tmp_path):
     sweep_dir = tmp_path / "results" / "exp"
     sweep_dir.mkdir(parents=True)
     store.write_manifest(sweep_dir, new_manifest("exp", "smoke", specs))
-    row = {**specs[0].to_dict(), "cell_id": specs[0].cell_id, "eval_mixed": 0.5}
+    row = finished_row(specs[0])
     store.write_row(sweep_dir, row, sweep_id="exp")
     store.record_failure(sweep_dir, specs[1].cell_id, "signaling", specs[1].method, "Boom: it broke")
     return sweep_dir

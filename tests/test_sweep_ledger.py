@@ -12,6 +12,7 @@ import sys
 import time
 
 import pytest
+from harness import finished_row
 
 from asp_dist.errors import SchemaError, SweepError
 from asp_dist.results import store
@@ -196,7 +197,7 @@ def test_status_counts_a_later_success_over_an_old_failure(tmp_path, smoke_specs
     for spec in (first, second):
         store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, "Traceback\nRuntimeError: boom")
     # A failure record left by an earlier attempt of a cell that then finished.
-    store.write_row(sweep_dir, {**first.to_dict(), "cell_id": first.cell_id, "eval_mixed": 0.5}, sweep_id="exp")
+    store.write_row(sweep_dir, finished_row(first), sweep_id="exp")
     done, failed = ledger.finished_and_failed(sweep_dir, [s.cell_id for s in smoke_specs])
     assert done == {first.cell_id} and failed == {second.cell_id}
     text = ledger.sweep_status("exp", tmp_path)

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import pytest
+from planted import PLANTS
 from harness import (
     env,
     fingerprint,
@@ -293,6 +294,59 @@ def test_a_data_error_is_recorded_once_not_retried_as_a_crash(trainable, monkeyp
     failed = store.failed_cells(sweep_dir)
     assert list(failed) == [spec.cell_id]
     assert "MNISTError: MNIST file /data/train-images.gz is unreadable" in failed[spec.cell_id]["error"]
+
+
+@pytest.mark.parametrize("plant", PLANTS)
+def test_a_planted_checkpoint_runs_nothing_and_its_cell_starts_over(trainable, monkeypatch, tmp_path, plant, capsys):
+    """A checkpoint Tune hands back is read with weights_only: a planted pickle is refused in one line, never
+    run, and the cell trains from its start to the row an uninterrupted run writes."""
+    from ray import tune
+
+    sweep_tune, config, spec, sweep_dir, _, reports = trainable
+    planted = tmp_path / "planted-checkpoint"
+    planted.mkdir()
+    (planted / "state.pt").write_bytes(PLANTS[plant](tmp_path / "ran"))
+    monkeypatch.setattr(sweep_tune.tune, "get_checkpoint", lambda: tune.Checkpoint.from_directory(planted))
+    sweep_tune.train_cell(config)
+    assert not (tmp_path / "ran").exists(), "restoring the planted checkpoint ran its code"
+    rows = store.read_rows(sweep_dir)
+    assert list(rows["cell_id"]) == [spec.cell_id] and rows["resumed_from_step"].isna().all()
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("asp-dist: warning:")]
+    assert len(warnings) == 1 and "refused unread" in warnings[0] and "starts over" in warnings[0], warnings
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "missing"])
+def test_a_cell_without_finite_metrics_fails_in_one_line_and_resume_retries_it(trainable, monkeypatch, bad, capsys):
+    """A row is finished only if every metric its domain declares is there and finite: otherwise no row is
+    written, the failure is recorded under its cause, and the cell is pending again for `resume`."""
+    from asp_dist.domains import get_domain
+    from asp_dist.sweep.ledger import new_manifest
+
+    sweep_tune, config, spec, sweep_dir, _, reports = trainable
+    store.write_manifest(sweep_dir, new_manifest("smoke", "smoke", [spec.resolved()]))
+    domain = get_domain(spec.domain)
+    evaluate = domain.evaluate
+
+    def broken(*args):
+        metrics = dict(evaluate(*args))
+        if bad == "missing":
+            del metrics["mixed"]
+        else:
+            metrics["mixed"] = float(bad)
+        return metrics
+
+    monkeypatch.setattr(domain, "evaluate", broken)
+    sweep_tune.train_cell(config)
+    assert not store.is_done(sweep_dir, spec.domain, spec.method, spec.cell_id)
+    error = store.failed_cells(sweep_dir)[spec.cell_id]["error"]
+    why = {"nan": "metric 'mixed' is NaN", "inf": "metric 'mixed' is inf", "missing": "metric 'mixed' is missing"}
+    assert error.startswith(f"InvalidRow: signaling evaluate gave no valid row: {why[bad]}"), error
+    capsys.readouterr()
+    assert cli.main(["status", sweep_dir.name, "--results", str(sweep_dir.parent)]) == 0
+    assert f"1 cell: InvalidRow: signaling evaluate gave no valid row: {why[bad]}" in capsys.readouterr().out
+    monkeypatch.setattr(domain, "evaluate", evaluate)  # the domain fixed: what resume then does with the cell
+    sweep_tune.train_cell(config)
+    assert store.is_done(sweep_dir, spec.domain, spec.method, spec.cell_id) and not store.failed_cells(sweep_dir)
 
 
 # ---- stopping a running sweep --------------------------------------------------------------------------------

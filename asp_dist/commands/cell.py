@@ -63,11 +63,18 @@ def cmd_cell(args: argparse.Namespace) -> int:
     check_data([spec])
     import torch
 
+    from asp_dist.training.bases import BaseRejected
     from asp_dist.training.cell import run_cell
+    from asp_dist.training.pipeline import CellDiverged
+    from asp_dist.training.row import InvalidRow
 
     torch.set_num_threads(args.threads)
     try:
         row = run_cell(spec, progress=None if args.quiet else CellProgressPrinter(spec.cell_id))
+    except (BaseRejected, CellDiverged, InvalidRow) as e:  # the cell ran and failed: no row, exit 1 as a sweep's
+        print(f"asp-dist: error: cell {spec.cell_id} failed: {type(e).__name__}: {' '.join(str(e).split())}",
+              file=sys.stderr)
+        return 1
     except (MemoryError, RuntimeError) as e:  # within CellSpec's size estimates, yet too big for this machine
         asked = re.search(r"allocate (\d+) bytes", str(e))
         if not isinstance(e, MemoryError) and asked is None:

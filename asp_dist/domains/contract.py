@@ -79,6 +79,11 @@ class SelfPlayOut:
     info: dict[str, float] = field(default_factory=dict)
 
 
+# What every domain's evaluate() returns (Domain.metrics declares them, with any others): a row counts as finished
+# only with each of them finite (asp_dist.results.store reads no other as proof).
+REQUIRED_METRICS = ("mixed", "self_play_new", "self_play_base")
+
+
 class Domain(ABC):
     name: str = ""
     # This domain's own knobs (asp_dist.knobs.Knob: name, type, default, doc, choices, bound, ...), named
@@ -187,6 +192,12 @@ class Domain(ABC):
     def train_base(self, spec: CellSpec, seed: int, progress: ProgressFn | None = None) -> tuple[nn.Module, float]:
         """Train one base candidate from `seed`; return (agents, score compared with the bar)."""
 
+    def base_agents(self, spec: CellSpec) -> nn.Module:
+        """An untrained module of the shape train_base returns for `spec`: a stored base is its weights (never a
+        pickled object), loaded into this. By default new_agents' shape; a domain whose base has another
+        shape overrides it (check_domain checks that a base's weights fit)."""
+        return self.new_agents(spec, 0)
+
     @abstractmethod
     def paired(self, spec: CellSpec, base: nn.Module, n: int, gen: torch.Generator) -> Tensors:
         """P: n input-output tuples of the base. Sets for n < m must be prefixes of the set for m."""
@@ -276,7 +287,7 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
 
     spec = spec.resolved()
     _holds(spec.domain == domain.name, "spec is for another domain")
-    for metric in ("mixed", "self_play_new", "self_play_base"):
+    for metric in REQUIRED_METRICS:
         _holds(metric in domain.metrics, f"{domain.name}: metrics must declare {metric!r}")
     for knob in (*domain.defaults, *domain.knob_defaults):
         _holds(hasattr(spec, knob), f"{domain.name}: default for unknown field {knob!r}")
@@ -285,6 +296,9 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
     base_b, score_b = domain.train_base(spec, seed=123)
     _holds(score_a == score_b, "train_base: same seed gave different scores")
     assert_same_params(base_a, base_b, "train_base")
+    _holds(_same_shapes(base_a, domain.base_agents(spec)),
+           "train_base: the base's weights do not fit base_agents(spec) (names or shapes differ); a stored base is "
+           "its weights, loaded into base_agents: override it where the base is not new_agents' shape")
 
     def gen(seed: int) -> torch.Generator:
         return torch.Generator().manual_seed(seed)
@@ -321,8 +335,35 @@ def check_domain(domain: Domain, spec: CellSpec) -> None:
 
     m1 = domain.evaluate(spec, base_a, agents_a, gen(4))
     m2 = domain.evaluate(spec, base_a, agents_a, gen(4))
-    _holds(m1 == m2, "evaluate: same seed gave different metrics")
     _holds(set(m1) == set(domain.metrics), f"evaluate returned {sorted(m1)}, declared {sorted(domain.metrics)}")
+    problem = metric_problem(domain, m1)
+    _holds(problem is None, f"evaluate: {problem}")
+    _holds(m1 == m2, "evaluate: same seed gave different metrics")
+
+
+def metric_problem(domain: Domain, metrics: dict[str, Any]) -> str | None:
+    """What makes `metrics` (evaluate's result) unfit for a row, in a few words naming the metric; None if
+    every declared metric is there and finite (a row is finished only then: asp_dist.training.row)."""
+    import math
+
+    for name in domain.metrics:
+        if name not in metrics:
+            return f"metric {name!r} is missing (evaluate returned {sorted(metrics) or 'nothing'})"
+        value = metrics[name]
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            return f"metric {name!r} is not a number ({type(value).__name__} {value!r:.40})"
+        if math.isnan(number):
+            return f"metric {name!r} is NaN"
+        if math.isinf(number):
+            return f"metric {name!r} is {number}"
+    return None
+
+
+def _same_shapes(a: nn.Module, b: nn.Module) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype for k in sa)
 
 
 def assert_same_params(a: nn.Module, b: nn.Module, what: str) -> None:

@@ -153,7 +153,7 @@ VERIFY_THREADS = 4  # at most; footers are parsed (and on S3 fetched) in paralle
 # again), and a missing, stale or unreadable index only costs the time it saves. Local disk only (on S3 the
 # listing already gives size and Last-Modified, and status is dominated by the requests).
 VERDICTS_FILE = ".verified.json"  # in cells/: a hidden name, so no reader of the dataset ever sees it
-_VERDICTS_VERSION = 1
+_VERDICTS_VERSION = 2  # 2: a good verdict also says every declared metric is finite
 _INDEXED: dict[str, dict[str, list[int]]] = {}  # cells/ root -> the good verdicts its index holds (as read or written)
 
 
@@ -252,12 +252,30 @@ def cell_file_problem(path: AnyPath, root: AnyPath) -> str | None:
                 elif (row["domain"], row["method"]) != (domain, method):
                     problem = f"holds a {row['domain']}/{row['method']} row in the directory of {domain}/{method}"
                 else:
-                    problem = None
+                    problem = _metrics_problem(path, meta)
         except (pa.ArrowException, OSError) as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             problem = f"cannot be read as Parquet ({first})"
     _CHECKED[str(path)] = (key, problem)
     return problem
+
+
+def _metrics_problem(path: AnyPath, meta) -> str | None:
+    """What makes a cell's row unfinished: a metric every domain returns (contract.REQUIRED_METRICS) missing or
+    not finite, as in a row of older code or a planted one (today's rows are checked before they are written,
+    against every metric their domain declares: asp_dist.training.row.build_row)."""
+    import math
+
+    from asp_dist.domains.contract import REQUIRED_METRICS
+
+    columns = {f"eval_{m}": _column_index(meta, f"eval_{m}") for m in REQUIRED_METRICS}
+    missing = [name for name, i in columns.items() if i is None]
+    if missing:
+        return f"lacks the metric column(s) {', '.join(missing)}; it is not a finished row"
+    values = _footer_values(path, meta, columns)
+    bad = [f"{name} = {values[name]}" for name in columns
+           if not isinstance(values[name], (int, float)) or not math.isfinite(values[name])]
+    return f"has {', '.join(bad)}; it is not a finished row" if bad else None
 
 
 _COLUMN_AT: dict[str, int] = {}  # where a column was last found: the files of a sweep share their layout
@@ -391,10 +409,10 @@ def _failure_path(sweep_dir: str | AnyPath, cell_id: str) -> AnyPath:
 def record_failure(sweep_dir: str | AnyPath, cell_id: str, domain: str, method: str, error: str) -> None:
     """Record a cell that kept failing; it stays out of the dataset and is retried on resume."""
     path = _failure_path(sweep_dir, cell_id)
-    previous = json.loads(path.read_text()) if path.exists() else {}
+    previous = _failure_record(path) if path.exists() else {}
     info = {"cell_id": cell_id, "domain": domain, "method": method, "error": error[-4000:],
             "failed_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "times_failed": int(previous.get("times_failed", 0)) + 1}
+            "times_failed": _count(previous.get("times_failed")) + 1}
     write_replace(path, json.dumps(info, indent=1))
 
 
@@ -407,7 +425,24 @@ def failed_cells(sweep_dir: str | AnyPath) -> dict[str, dict[str, Any]]:
     root = as_path(sweep_dir) / FAILED_DIR
     if not isinstance(root, S3Path) and not root.is_dir():
         return {}
-    return {p.stem: json.loads(p.read_text()) for p in sorted(root.glob("*.json")) if visible(p, root)}
+    return {p.stem: _failure_record(p) for p in sorted(root.glob("*.json")) if visible(p, root)}
+
+
+def _count(value: Any) -> int:
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else 0
+
+
+def _failure_record(path: AnyPath) -> dict[str, Any]:
+    """A failure record as written by record_failure; one that is not (cut short, edited, planted) still says
+    that its cell failed, with what is wrong with the record as its error, instead of stopping the reader."""
+    try:
+        record = json.loads(path.read_text())
+        if isinstance(record, dict):
+            return record
+        problem = "is not a JSON object"
+    except (ValueError, UnicodeDecodeError) as err:
+        problem = f"cannot be read ({type(err).__name__})"
+    return {"cell_id": path.stem, "error": f"the failure record {path.name} {problem}", "times_failed": 0}
 
 
 def last_error_line(record: dict[str, Any], width: int = 160) -> str:

@@ -15,6 +15,10 @@ workers still both train one base (a builder silent for longer than the lease la
 wins and the other cell loads the stored base instead of its own: every cell of a trial uses the
 same bytes, and a stored base is never overwritten.
 
+A base file that cannot be read safely (truncated, planted, of an older format: asp_dist.training.artefacts)
+is refused in one warning line, moved to ``<sweep>/damaged/<UTC time>/bases/`` as a damaged cell file is, and
+trained again, under the same lock or lease as a first training; it is never unpickled.
+
 A base that no attempt could train to the domain's bar is remembered too, as
 ``<base_key>.rejected.json``: every other cell of that trial then fails at once with the same
 BaseRejected message instead of repeating all attempts (21 cells x 5 attempts for one
@@ -26,14 +30,18 @@ from __future__ import annotations
 
 import fcntl
 import json
+import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.fsutil import atomic_write
-from asp_dist.results.location import AnyPath, write_replace
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath, move_aside, write_replace
 from asp_dist.results.s3 import S3Path
 from asp_dist.spec import CellSpec
+from asp_dist.training.artefacts import DamagedArtefact
 from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, base_to_bytes, train_accepted_base
 
 POLL_S = 1.0  # on S3: how often a cell waiting for a base being trained elsewhere looks for it
@@ -53,15 +61,42 @@ def rejected_path(cache_dir: AnyPath, base_key: str) -> AnyPath:
 
 def _raise_if_rejected(cache_dir: AnyPath, base_key: str) -> None:
     path = rejected_path(cache_dir, base_key)
-    if path.exists():
-        raise BaseRejected(json.loads(path.read_text())["error"] + f" [remembered in {path}]")
+    if not path.exists():
+        return
+    try:
+        error = json.loads(path.read_text())["error"]
+    except (ValueError, UnicodeDecodeError, KeyError, TypeError):  # not what this module writes: no verdict
+        return
+    raise BaseRejected(f"{error} [remembered in {path}]")
 
 
 def _load(path: AnyPath, spec: CellSpec) -> BaseModel:
-    base = base_from_bytes(path.read_bytes())
-    if base.key != spec.base_key:
-        raise ValueError(f"base cache file {path} holds base {base.key}, expected {spec.base_key}")
-    return base
+    """The stored base (FileNotFoundError when there is none; DamagedArtefact when it cannot be read)."""
+    return base_from_bytes(path.read_bytes(), spec, what=f"base file {path}")
+
+
+def _stored(path: AnyPath, spec: CellSpec) -> BaseModel | None:
+    """The stored base, or None when there is none or it was damaged: then it is set aside (the caller holds the
+    base's lock or lease, so no other cell is reading it as it moves) and the caller trains it again."""
+    try:
+        return _load(path, spec)
+    except FileNotFoundError:
+        return None
+    except DamagedArtefact as err:
+        _set_aside(path, str(err))
+        return None
+
+
+def _set_aside(path: AnyPath, problem: str) -> None:
+    """Move a damaged base file to <sweep>/damaged/<UTC time>/bases/, kept for inspection, never read again."""
+    sweep_dir = path.parent.parent  # <sweep>/bases/<key>.pt
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    dest = sweep_dir / store.DAMAGED_DIR / stamp / path.parent.name / path.name
+    try:
+        move_aside(path, dest)
+    except FileNotFoundError:  # set aside by another cell meanwhile
+        return
+    print(f"asp-dist: warning: {problem}; moved to {dest} and trained again", file=sys.stderr, flush=True)
 
 
 def _get_remote_base(spec: CellSpec, cache_dir: S3Path, progress: ProgressFn | None) -> tuple[BaseModel, bool]:
@@ -71,7 +106,7 @@ def _get_remote_base(spec: CellSpec, cache_dir: S3Path, progress: ProgressFn | N
     while True:
         try:
             return _load(path, spec), True
-        except FileNotFoundError:
+        except (FileNotFoundError, DamagedArtefact):  # none yet, or one to set aside under the lease
             pass
         _raise_if_rejected(cache_dir, spec.base_key)
         lease = Lease(cache_dir / f".{spec.base_key}.lease")
@@ -79,8 +114,9 @@ def _get_remote_base(spec: CellSpec, cache_dir: S3Path, progress: ProgressFn | N
             time.sleep(POLL_S)  # another cell trains it: wait for its object
             continue
         try:
-            if path.exists():
-                return _load(path, spec), True
+            stored = _stored(path, spec)
+            if stored is not None:
+                return stored, True
             _raise_if_rejected(cache_dir, spec.base_key)  # decided while we waited
             try:
                 base = train_accepted_base(spec, progress)
@@ -101,15 +137,18 @@ def get_base(spec: CellSpec, cache_dir: AnyPath, progress: ProgressFn | None = N
         return _get_remote_base(spec, cache_dir, progress)
     cache_dir = Path(cache_dir)
     path = base_path(cache_dir, spec.base_key)
-    if path.exists():
+    try:
         return _load(path, spec), True
+    except (FileNotFoundError, DamagedArtefact):  # none yet, or one to set aside under the lock
+        pass
     _raise_if_rejected(cache_dir, spec.base_key)
     cache_dir.mkdir(parents=True, exist_ok=True)
     with open(cache_dir / f".{spec.base_key}.lock", "a+") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # waits while another cell trains this base
         try:
-            if path.exists():
-                return _load(path, spec), True
+            stored = _stored(path, spec)
+            if stored is not None:
+                return stored, True
             _raise_if_rejected(cache_dir, spec.base_key)  # decided while we waited for the lock
             try:
                 base = train_accepted_base(spec, progress)

@@ -16,6 +16,7 @@ stored row came from a pack); a CPU with other vector kernels rounds differently
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,8 +28,9 @@ from asp_dist.spec import CellSpec
 from asp_dist.sweep.base_cache import base_path
 from asp_dist.sweep.ledger import check_manifest_shape
 from asp_dist.sweep.packing import make_units, stored_packing
-from asp_dist.training.bases import BaseModel, base_from_bytes, train_accepted_base
-from asp_dist.training.row import VOLATILE_COLUMNS
+from asp_dist.training.artefacts import DamagedArtefact
+from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, train_accepted_base
+from asp_dist.training.row import VOLATILE_COLUMNS, InvalidRow
 
 # Where and with what a row was made: compared to explain a difference, not as the row's content.
 PROVENANCE = ("sweep_id", "ray_node_id", "ray_version", "pack", "asp_dist_version", "torch_version",
@@ -102,12 +104,16 @@ def _stored_row(sweep_dir: AnyPath, cell_id: str, domain: str, method: str) -> d
 
 
 def _base(spec: CellSpec, sweep_dir: AnyPath) -> BaseModel:
-    """The sweep's stored base, or the same base trained again (never written to the sweep)."""
+    """The sweep's stored base, or the same base trained again (never written to the sweep). A stored base that
+    cannot be read safely (asp_dist.training.artefacts) is named in one warning line, never unpickled, and left
+    where it is: a replay writes nothing to the sweep (the next sweep run sets it aside)."""
     path = base_path(store.bases_dir(sweep_dir), spec.base_key)
-    if path.is_file():
-        base = base_from_bytes(path.read_bytes())
-        if base.key == spec.base_key:
-            return base
+    try:
+        return base_from_bytes(path.read_bytes(), spec, what=f"base file {path}")
+    except FileNotFoundError:
+        pass
+    except DamagedArtefact as err:
+        print(f"asp-dist: warning: {err}; the base is trained again for this replay", file=sys.stderr, flush=True)
     return train_accepted_base(spec)
 
 
@@ -117,6 +123,7 @@ def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
 
     from asp_dist.training.cell import run_cell
     from asp_dist.training.engines import run_pack
+    from asp_dist.training.pipeline import CellDiverged
     from asp_dist.training.row import environment_columns
 
     manifest = store.read_manifest(sweep_dir)
@@ -146,7 +153,10 @@ def replay_cell(sweep_dir: AnyPath, cell_id: str) -> Replay:
             raise SweepError(f"cell {cell_id} failed in its replay: {result.error}")
         replayed, how = dict(result.row, pack=stored["pack"]), f"in its pack {stored['pack']} ({len(members)} cells)"
     else:
-        replayed, how = run_cell(spec, base=_base(spec, sweep_dir)), "alone"
+        try:
+            replayed, how = run_cell(spec, base=_base(spec, sweep_dir)), "alone"
+        except (BaseRejected, CellDiverged, InvalidRow) as err:
+            raise SweepError(f"cell {cell_id} failed in its replay: {err}") from None
     seconds = time.perf_counter() - t0
     skip = VOLATILE_COLUMNS | set(PROVENANCE)
     columns = [c for c in stored if c not in skip]

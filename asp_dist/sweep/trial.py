@@ -3,8 +3,8 @@
 What a worker does with a unit (asp_dist.sweep.packing.Unit, as ``unit_config`` hands it to Tune):
 
 1. skip it if every member already has a row (finished before Tune's state caught up);
-2. continue from the trial's last checkpoint when it has one (a restarted or restored trial) and it is
-   of these cells;
+2. continue from the unit's newest checkpoint when it has one (a restarted trial's, or one an earlier run of
+   the sweep left) and it is of these cells;
 3. get each member's base from the sweep's shared cache (asp_dist.sweep.base_cache); a base that never
    meets its bar fails that base's members only;
 4. train the live members through the one cell pipeline (asp_dist.training.pipeline: a lone cell on its
@@ -134,7 +134,7 @@ def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None,
             failures.update({s.cell_id: why for s in specs if s.base_key == spec.base_key})
     live = [s for s in specs if s.cell_id not in failures]
     feed = _feed(unit["sweep_id"], todo)
-    restore = _restored_state()
+    restore = _restored_state(sweep_dir, unit["name"])
     if restore is not None:
         restore = upgrade_checkpoint(restore)
         if (restore.get("pack_id"), restore.get("cell_ids")) != (pack_id, [s.cell_id for s in live]):
@@ -221,35 +221,77 @@ def _feed(sweep: str, cells: set[str]) -> Feed | None:
     return None if _HUBS[sweep] is None else Feed(_HUBS[sweep], only=cells)
 
 
-def _restored_state() -> dict | None:
-    """The state of the trial's last checkpoint (a restarted or restored trial), else None.
+def _restored_state(sweep_dir: AnyPath, name: str) -> dict | None:
+    """The state of the unit's newest checkpoint, else None: the one Tune hands a restarted trial (a worker that
+    died), or else the newest the unit left in an earlier experiment of the sweep (a resumed sweep starts a new
+    experiment: asp_dist.sweep.tune never restores Tune's own pickled state).
 
-    A checkpoint that Tune's experiment state names may be gone: Tune deletes the older checkpoint as soon as a
-    newer one is registered (num_to_keep=1) but uploads its experiment state to remote storage asynchronously,
-    so a driver killed in between leaves a state in the bucket that names a deleted checkpoint. The cell then
-    starts over (its row is the same, only the time is lost) instead of failing its trial."""
-    import torch
-
+    A checkpoint Tune names may be gone (Tune deletes the older one as soon as a newer one is registered, and
+    on S3 uploads asynchronously); one may be cut short or planted. Each is read with weights_only
+    (asp_dist.training.artefacts): one that cannot be read is named in one warning line, never unpickled, and
+    the next older one is tried; with none left the cell starts over (its row is the same, only time is lost)."""
     checkpoint = tune.get_checkpoint()
-    if checkpoint is None:
+    if checkpoint is not None:
+        try:
+            with checkpoint.as_directory() as d:
+                state = _read_state(Path(d) / "state.pt", f"checkpoint {checkpoint.path}/state.pt")
+        except FileNotFoundError:  # nothing at all under the checkpoint's path
+            state = None
+        if state is not None:
+            return state
+        print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from holds no "
+              f"state it can use; the trial starts over", file=sys.stderr, flush=True)
         return None
-    try:
-        with checkpoint.as_directory() as d:
-            if (Path(d) / "state.pt").is_file():
-                return torch.load(Path(d) / "state.pt", weights_only=False)
-    except FileNotFoundError:  # nothing at all under the checkpoint's path
-        pass
-    print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from holds no state "
-          f"(deleted after a newer one while Tune's experiment state was on its way to storage); the trial starts "
-          f"over", file=sys.stderr, flush=True)
+    for path in _earlier_checkpoints(sweep_dir, name):
+        state = _read_state(path, f"checkpoint {path}")
+        if state is not None:
+            return state
     return None
+
+
+def _read_state(path: AnyPath, what: str) -> dict | None:
+    """A checkpoint's state, or None (with one warning line when the file is there but cannot be used)."""
+    from asp_dist.training.artefacts import DamagedArtefact, load_file
+
+    try:
+        state = load_file(path, what)
+    except FileNotFoundError:
+        return None
+    except DamagedArtefact as err:
+        print(f"asp-dist: warning: {err}; not restored from it", file=sys.stderr, flush=True)
+        return None
+    if not isinstance(state, dict):
+        print(f"asp-dist: warning: {what} holds no checkpoint's state; not restored from it", file=sys.stderr,
+              flush=True)
+        return None
+    return state
+
+
+def _earlier_checkpoints(sweep_dir: AnyPath, name: str) -> list[AnyPath]:
+    """state.pt of every checkpoint the unit `name` left under the sweep's Tune experiments
+    (tune/run-<n>/<name>/checkpoint_<k>/), newest first (by n, then k)."""
+    found = []
+    for run in _numbered(sweep_dir / TUNE_DIR, "run-"):
+        for checkpoint in _numbered(run[1] / name, "checkpoint_"):
+            found.append(((run[0], checkpoint[0]), checkpoint[1] / "state.pt"))
+    return [path for _, path in sorted(found, key=lambda item: item[0], reverse=True)]
+
+
+def _numbered(directory: AnyPath, prefix: str) -> list[tuple[int, AnyPath]]:
+    """(n, path) of the entries <prefix><n> of a local or S3 directory; none when it does not exist."""
+    try:
+        entries = list(directory.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    return [(int(p.name[len(prefix):]), p) for p in entries
+            if p.name.startswith(prefix) and p.name[len(prefix):].isdigit()]
 
 
 def _checkpointer(sweep_dir: AnyPath, name: str, report: Callable[..., None]):
     """save(state): one checkpoint of the trial through `report` (tune.report)."""
     # On S3 the sweep has no local directory: stage in the trial's working directory, which Tune keeps
     # under the Ray temp dir (node-local scratch, pruned with its session).
-    import torch
+    from asp_dist.training.artefacts import to_bytes
 
     staging = Path.cwd() / CKPT_TMP if isinstance(sweep_dir, S3Path) else sweep_dir / TUNE_DIR / CKPT_TMP
 
@@ -260,7 +302,7 @@ def _checkpointer(sweep_dir: AnyPath, name: str, report: Callable[..., None]):
         staging.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=staging) as d:
             part = Path(d) / ".state.pt.part"
-            torch.save(state, part)
+            part.write_bytes(to_bytes(state))  # plain containers of tensors: read back with weights_only
             os.replace(part, Path(d) / "state.pt")
             report({"cell_done": 0, "step": state["trainer"]["step"]}, checkpoint=tune.Checkpoint.from_directory(d))
 

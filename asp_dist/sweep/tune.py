@@ -10,9 +10,9 @@ Flow of ``run_sweep`` / ``resume_sweep``:
 3. drop the cells that already have a Parquet file (the record that a cell is done);
 4. start an embedded Ray (or join ``--address``: that connection is made, within
    ``--connect-timeout``, before anything is written) and run one Tune trial per remaining cell,
-   1 CPU each, ``reuse_actors=True``, at most ``workers`` at once. If the previous run of this
-   sweep was interrupted, its Tune experiment is restored (``Tuner.restore``) so running cells
-   continue from their last checkpoint (``tune.get_checkpoint``);
+   1 CPU each, ``reuse_actors=True``, at most ``workers`` at once, in a new Tune experiment (run-<n>).
+   Tune's own state is never restored (Tuner.restore unpickles it): a unit that an interrupted run left
+   half-trained continues from the newest checkpoint it left there, read as plain tensors (trial.py);
 5. each trial (asp_dist.sweep.trial) gets its bases from the shared cache, trains its unit through the one
    cell pipeline (checkpointing through ``tune.report(..., checkpoint=...)``) and writes its rows through
    ``asp_dist.results.store``.
@@ -245,43 +245,22 @@ def last_failure(sweep_dir: AnyPath, failed: set[str]) -> str:
     return f"{newest['cell_id']}: {store.last_error_line(newest)}"
 
 
-def _tune_experiment(sweep_dir: AnyPath, pending: list[Unit], allow_restore: bool = True) -> tuple[str, bool]:
-    """Name of the Tune experiment to run, and whether to restore it.
+def _new_experiment(sweep_dir: AnyPath, pending: list[Unit]) -> str:
+    """The name of a new Tune experiment for the pending units: run-<n>, n one above the sweep's last.
 
-    An interrupted experiment is restored when it covers every pending cell (then its running
-    trials continue from their checkpoints); otherwise a new experiment over just the pending
-    cells (and packs) starts (e.g. after a clean finish with failures, or when the state is unreadable).
-    """
+    A sweep never restores an earlier experiment (Tuner.restore unpickles Tune's state, and a results
+    directory may be shared or copied: docs/decisions/0057-stored-artefacts-hold-no-code.md); each unit of
+    the new one continues from the newest checkpoint its name left under an earlier one (asp_dist.sweep.trial),
+    read as plain tensors. tune/current.json records which experiment covers which cells."""
     tune_root = sweep_dir / TUNE_DIR
-    current_path = tune_root / TUNE_CURRENT
-    pending_ids = {cell_id for unit in pending for cell_id in unit.cell_ids}
-    if current_path.exists():
-        current = json.loads(current_path.read_text())
-        storage_path, storage_fs = tune_storage(sweep_dir)
-        exp_path = f"{storage_path}/{current['experiment']}"
-        if allow_restore and pending_ids <= set(current["cells"]) and tune.Tuner.can_restore(
-                exp_path, storage_filesystem=storage_fs) and _state_readable(tune_root / current["experiment"]):
-            return current["experiment"], True
-        number = int(current["experiment"].rsplit("-", 1)[1]) + 1
-    else:
-        number = 1
-    experiment = f"run-{number}"
-    write_replace(current_path, json.dumps({"experiment": experiment, "cells": sorted(pending_ids)}))
-    return experiment, False
-
-
-def _state_readable(experiment_dir: AnyPath) -> bool:
-    """Tune's newest experiment state there is whole JSON. A write cut short (a full disk, a crash of the
-    disk) would make Tune's restore fail with a traceback; the sweep then starts a new experiment instead,
-    and the running cells' checkpoints are lost, not their rows."""
-    try:  # (the trials' state; basic-variant-state-*.json beside it is a pickle despite its name)
-        states = sorted(experiment_dir.glob("experiment_state-*.json"), key=lambda p: p.name)
-        if states:
-            json.loads(states[-1].read_text())
-        return True
-    except (OSError, ValueError):
-        log.warning("Tune's state in %s cannot be read; the pending cells start a new experiment", experiment_dir)
-        return False
+    try:
+        numbers = [int(p.name[4:]) for p in tune_root.iterdir() if p.name.startswith("run-") and p.name[4:].isdigit()]
+    except (FileNotFoundError, NotADirectoryError):
+        numbers = []
+    experiment = f"run-{max(numbers, default=0) + 1}"
+    cells = sorted(cell_id for unit in pending for cell_id in unit.cell_ids)
+    write_replace(tune_root / TUNE_CURRENT, json.dumps({"experiment": experiment, "cells": cells}))
+    return experiment
 
 
 def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], workers: int, max_failures: int,
@@ -293,20 +272,7 @@ def _run_tune(sweep_dir: AnyPath, callback: SweepCallback, pending: list[Unit], 
     state_log = logging.getLogger("ray.tune.execution.experiment_state")
     if not any(isinstance(f, _DiskFullLogFilter) for f in state_log.filters):
         state_log.addFilter(_DiskFullLogFilter())
-    experiment, restore = _tune_experiment(sweep_dir, pending)
-    if restore:
-        try:
-            _fit(_restored_tuner(sweep_dir, experiment))
-        except Exception as e:  # noqa: BLE001 - an unreadable Tune state must not block the sweep
-            log.warning("could not restore Tune experiment %s (%s); starting a new one", experiment, e)
-        # Tune does not rerun trials it saw finish, e.g. a cell that failed deterministically
-        # (recorded under failed/): whatever is still missing runs in a fresh experiment (a pack with
-        # a missing member as the whole pack).
-        pending = [u for u in pending if not all(store.is_done(sweep_dir, s.domain, s.method, s.cell_id)
-                                                 for s in u.specs)]
-        if not pending:
-            return
-        experiment, _ = _tune_experiment(sweep_dir, pending, allow_restore=False)
+    experiment = _new_experiment(sweep_dir, pending)
     _fit(_new_tuner(sweep_dir, callback, experiment, pending, workers, max_failures, checkpoint_every_s))
 
 
@@ -367,13 +333,6 @@ def _fit(tuner: tune.Tuner) -> None:
 
 def _trainable():
     return tune.with_resources(train_cell, {"cpu": 1})
-
-
-def _restored_tuner(sweep_dir: AnyPath, experiment: str) -> tune.Tuner:
-    # Restores the stored Tune settings too (max_failures, checkpoint interval, callbacks).
-    storage_path, storage_fs = tune_storage(sweep_dir)
-    return tune.Tuner.restore(f"{storage_path}/{experiment}", trainable=_trainable(), resume_unfinished=True,
-                              resume_errored=True, storage_filesystem=storage_fs)
 
 
 def _tune_result_logs() -> list:

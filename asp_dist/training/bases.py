@@ -2,11 +2,12 @@
 
 The sweep service shares one base between all cells of a trial through a content-addressed
 cache keyed by ``CellSpec.base_key``; this module only knows how to train and (de)serialise.
+A stored base is its weights and its facts (asp_dist.training.artefacts: no pickled object), loaded into
+the module its domain builds for the spec (Domain.base_agents).
 """
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,7 @@ from torch import nn
 from asp_dist.domains import get_domain
 from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
+from asp_dist.training import artefacts
 from asp_dist.training.float_mode import denormals_flushed
 from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
@@ -73,11 +75,50 @@ def attempt_steps(base_steps: int, growth: float, attempt: int) -> int:
     return int(round(base_steps * growth**attempt))
 
 
+BASE_FORMAT = "asp-dist base"
+# 2: weights and facts, read with weights_only (1: the pickled BaseModel, refused: docs/decisions/0057)
+BASE_FORMAT_VERSION = 2
+
+
 def base_to_bytes(base: BaseModel) -> bytes:
-    buf = io.BytesIO()
-    torch.save(base, buf)
-    return buf.getvalue()
+    """The stored form of a base: its facts, its agents' weights and which of their modules are in training
+    mode (a base is usually stored in eval mode, and dropout or batch norm would act on it otherwise)."""
+    return artefacts.to_bytes({
+        "format": BASE_FORMAT, "version": BASE_FORMAT_VERSION, "key": base.key, "score": float(base.score),
+        "attempts": int(base.attempts), "seed": int(base.seed),
+        "attempt_scores": [float(s) for s in base.attempt_scores],
+        "train_wall_s": float(base.train_wall_s), "train_cpu_s": float(base.train_cpu_s),
+        "weights": base.agents.state_dict(),
+        "training": {name: module.training for name, module in base.agents.named_modules()}})
 
 
-def base_from_bytes(data: bytes) -> BaseModel:
-    return torch.load(io.BytesIO(data), weights_only=False)
+def base_from_bytes(data: bytes, spec: CellSpec, what: str = "base file") -> BaseModel:
+    """The base stored by base_to_bytes for `spec` (its base_key), its weights loaded into the module the spec's
+    domain builds; artefacts.DamagedArtefact (one line) for a file that is not that base, whatever is wrong."""
+    spec = spec.resolved()
+    state = artefacts.from_bytes(data, what)
+    need = artefacts.require
+    need(isinstance(state, dict) and state.get("format") == BASE_FORMAT, what, "is not an asp-dist base")
+    need(state.get("version") == BASE_FORMAT_VERSION, what,
+         f"is a base of format version {state.get('version')!r}, not {BASE_FORMAT_VERSION}")
+    need(state.get("key") == spec.base_key, what, f"holds base {state.get('key')!r}, expected {spec.base_key}")
+    agents = get_domain(spec.domain).base_agents(spec)
+    weights, training = state.get("weights"), state.get("training")
+    need(isinstance(weights, dict) and isinstance(training, dict), what, "lacks its weights")
+    try:
+        agents.load_state_dict(weights, strict=True)
+    except (RuntimeError, TypeError, ValueError) as err:  # names, shapes or dtypes other than the domain's
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise artefacts.DamagedArtefact(f"{what} does not fit a {spec.domain} base for these settings "
+                                        f"({first[:200]})") from None
+    modules = dict(agents.named_modules())
+    need(set(training) == set(modules), what, "names other modules than the domain's base")
+    for name, module in modules.items():
+        module.training = bool(training[name])
+    try:
+        return BaseModel(agents=agents, key=state["key"], score=float(state["score"]),
+                         attempts=int(state["attempts"]), seed=int(state["seed"]),
+                         attempt_scores=[float(s) for s in state["attempt_scores"]],
+                         train_wall_s=float(state["train_wall_s"]), train_cpu_s=float(state["train_cpu_s"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise artefacts.DamagedArtefact(f"{what} lacks a base's facts ({type(err).__name__}: {err})") from None

@@ -30,7 +30,7 @@ from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
 from asp_dist.training.float_mode import denormals_flushed
 from asp_dist.training.loop import PhaseTimer, make_probe, train_to_end
 from asp_dist.training.methods import method_weights
-from asp_dist.training.row import build_row
+from asp_dist.training.row import InvalidRow, build_row
 from asp_dist.training.torch_runtime import keep_dynamo_unloaded
 
 # The one checkpoint format of cells and packs: {"version", "engine", "cell_ids", "trainer", "timings"}.
@@ -90,7 +90,7 @@ class UnitTrainer(Protocol):
 @dataclass
 class CellResult:
     """One member's outcome: its result row (as run_cell's) and curve, or why it failed (`exception`:
-    BaseRejected, CellDiverged; `error`: its message)."""
+    BaseRejected, CellDiverged, InvalidRow; `error`: its message)."""
 
     spec: CellSpec
     row: dict[str, Any] | None = None
@@ -275,9 +275,13 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
                 metrics = domain.evaluate(spec, base.agents, member.agents,
                                           torch.Generator().manual_seed(spec.seed_for("eval")))
             figure = domain.figure_data(spec, base.agents, member.agents) if spec.record_figure_data else None
-        results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
-                                   losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
-                                   resumed_from=resumed_from)
+        try:
+            results[i].row = build_row(spec, domain, base, base_reused=reused[i], metrics=metrics,
+                                       losses=trainer.loss_columns(k), figure=figure, timings=timer.columns(),
+                                       resumed_from=resumed_from)
+        except InvalidRow as exc:  # this member only: the unit's others keep their rows
+            results[i].exception = exc
+            continue
         results[i].curve = member.curve if curves else None
         if progress is not None:
             progress("eval", k + 1, len(live), {"mixed": metrics["mixed"]})

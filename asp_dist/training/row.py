@@ -169,10 +169,22 @@ def row_table(row: dict[str, Any]) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=sch)
 
 
+class InvalidRow(RuntimeError):
+    """A cell whose evaluation gave no valid row (a declared metric missing or not finite): the cell fails,
+    is recorded under failed/ with this one line, and `resume` tries it again; no row is written."""
+
+
 def build_row(spec: CellSpec, domain: "Domain", base: "BaseModel", *, base_reused: bool, metrics: dict[str, float],
               losses: dict[str, float | None], figure: dict | None, timings: dict[str, float],
               resumed_from: int | None) -> dict[str, Any]:
-    """The flat row of one finished cell (scalars and strings only)."""
+    """The flat row of one finished cell (scalars and strings only); InvalidRow unless every metric the domain
+    declares is there and finite: a row is the record that a cell is done, so it must be one stats can use."""
+    from asp_dist.domains.contract import metric_problem
+
+    problem = metric_problem(domain, metrics)
+    if problem is not None:
+        # No cell id in the message: `status` groups failures by their text, and the record names its cell.
+        raise InvalidRow(f"{spec.domain} evaluate gave no valid row: {problem}; no row written")
     row: dict[str, Any] = spec.to_dict()
     row.update({"cell_id": spec.cell_id, "seed_init": spec.seed_for("init"), "seed_train": spec.seed_for("train")})
     meta = base.meta()
