@@ -1,14 +1,12 @@
 """run_cell end to end on the signaling game: determinism, checkpoint/restore, row contents."""
 
-import io
 import json
 
 import pytest
-import torch
 from checkpoints import checkpoint_sink
 
-from asp_dist.training import artefacts
 from asp_dist.spec import FIELD_NAMES
+from asp_dist.training import artefacts
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.records import TERMS

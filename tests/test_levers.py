@@ -5,7 +5,6 @@ Budgets are shrunk (hidden 8, tens of updates, acceptance bar off) so the file r
 the default-size base (reward >= 0.95) is checked in the one slow test and in bench/bench_levers.py."""
 
 import copy
-import io
 import json
 
 import pytest
@@ -13,7 +12,6 @@ import torch
 from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 
-from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.domains.levers import (
     AGENTS,
@@ -27,6 +25,7 @@ from asp_dist.domains.levers import (
     team_reward,
 )
 from asp_dist.spec import CellSpec, SpecError
+from asp_dist.training import artefacts
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable

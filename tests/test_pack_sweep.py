@@ -16,9 +16,8 @@ mid-run, then resumed.
 
 from __future__ import annotations
 
-import json
-
 import inspect
+import json
 import os
 import shutil
 import signal
@@ -33,8 +32,19 @@ import pyarrow.parquet as pq
 import pytest
 import ray
 from budgets import TINY, tiny_spec
-from harness import (checkpointed_running_trials, clean, cli, env, expected_rows, finished_row, kill_group,
-                     newest_state, s3_env, start_moto, stop_now)
+from harness import (
+    checkpointed_running_trials,
+    clean,
+    cli,
+    env,
+    expected_rows,
+    finished_row,
+    kill_group,
+    newest_state,
+    s3_env,
+    start_moto,
+    stop_now,
+)
 from packed_cases import DOMAINS as PACKED_DOMAINS
 from packed_cases import trainer_class
 

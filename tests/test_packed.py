@@ -16,19 +16,32 @@ import pytest
 import torch
 from budgets import TINY, tiny_spec
 from checkpoints import checkpoint_sink
-from packed_cases import (DOMAINS, AdamDrift, adam_sqrt_v, case_for, disc_grad_tol, disc_params, flat_grads,
-                          flat_params, float32_tol, lone, other_value, packed_module, stacked_sqrt_v, trainer_class)
+from packed_cases import (
+    DOMAINS,
+    AdamDrift,
+    adam_sqrt_v,
+    case_for,
+    disc_grad_tol,
+    disc_params,
+    flat_grads,
+    flat_params,
+    float32_tol,
+    lone,
+    other_value,
+    packed_module,
+    stacked_sqrt_v,
+    trainer_class,
+)
 
-from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
 from asp_dist.knobs import ANY, Knob
-from asp_dist.training import engines
+from asp_dist.training import artefacts, engines
 from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.engines import lone_trainer, pack_key, run_pack, supports
 from asp_dist.training.methods import method_weights
-from asp_dist.training.stacked import StackedParams
 from asp_dist.training.row import comparable
+from asp_dist.training.stacked import StackedParams
 from asp_dist.training.trainer import Trainer
 
 

@@ -7,19 +7,17 @@ whole cells, pack-mates, divergence, checkpoints) are in tests/test_packed.py.""
 
 from __future__ import annotations
 
-import io
-
 import pytest
 import torch
 from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 from packed_cases import PARTICLES, AdamDrift, adam_sqrt_v, disc_grad_tol, flat_grads, flat_params, float32_tol, lone
 
-from asp_dist.training import artefacts
 from asp_dist.domains import get_domain
-from asp_dist.spec import CellSpec
-from asp_dist.training.bases import train_accepted_base
 from asp_dist.domains.particles.packed import PackedParticleTrainer
+from asp_dist.spec import CellSpec
+from asp_dist.training import artefacts
+from asp_dist.training.bases import train_accepted_base
 from asp_dist.training.cell import CellDiverged, run_cell
 from asp_dist.training.engines import lone_trainer, pack_key, supports
 from asp_dist.training.methods import method_weights

@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import pytest
-from planted import PLANTS
 from harness import (
     env,
     fingerprint,
@@ -35,6 +34,7 @@ from harness import (
     wait_for,
     wait_until_gone,
 )
+from planted import PLANTS
 
 from asp_dist import cli
 from asp_dist.commands import sweep as sweep_command
@@ -42,7 +42,6 @@ from asp_dist.data.mnist import MNISTError
 from asp_dist.results import store
 from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.spaces import expand
-
 
 # ---- a cluster that does not answer -------------------------------------------------------------------------
 REFUSED_WITHOUT_RAY = """import sys, time

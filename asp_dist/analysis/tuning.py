@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
 from asp_dist.analysis.document import Block, Heading, Table, Text
+from asp_dist.errors import SpecError
 from asp_dist.results.location import as_path
 from asp_dist.sweep.ledger import TUNE_CONFIGURATIONS as CONFIGURATIONS  # what asp-dist tune writes
 from asp_dist.sweep.ledger import TUNE_PLAN_FILE as PLAN_FILE
@@ -30,11 +32,16 @@ def read_configurations(result) -> pd.DataFrame:
         path = as_path(sweep_dir) / CONFIGURATIONS
         if not path.exists():
             continue
-        table = pd.read_parquet(str(path)) if isinstance(path, Path) else pd.read_parquet(path.open_input())
-        plan = json.loads((as_path(sweep_dir) / PLAN_FILE).read_text())
-        layout = result.layouts.get(plan["domain"])
+        try:
+            table = pd.read_parquet(str(path)) if isinstance(path, Path) else pd.read_parquet(path.open_input())
+            plan = json.loads((as_path(sweep_dir) / PLAN_FILE).read_text())
+            domain = plan["domain"]
+        except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as err:
+            raise SpecError(f"{sweep_dir} holds a {CONFIGURATIONS} or {PLAN_FILE} that cannot be read "
+                            f"({type(err).__name__}); the tune run's files are damaged") from None
+        layout = result.layouts.get(domain)
         higher = layout.higher_is_better if layout is not None else True
-        frames.append(table.assign(run=as_path(sweep_dir).name, domain=plan["domain"], higher_is_better=higher))
+        frames.append(table.assign(run=as_path(sweep_dir).name, domain=domain, higher_is_better=higher))
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 

@@ -67,12 +67,20 @@ from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing, spread_bases
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
+from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
 from asp_dist.sweep.spaces import grid_hash
+from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
+    CKPT_TMP,
+    DISK_FULL,
+    TUNE_DIR,
+    config_cells,
+    train_cell,
+    trial_name,
+    unit_config,
+    unit_from_config,
+)
 from asp_dist.sweep.tune_storage import tune_storage
 from asp_dist.tracking.base import TrackingSettings
-from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
-from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, trial_name: re-exported)
-    CKPT_TMP, DISK_FULL, TUNE_DIR, config_cells, train_cell, trial_name, unit_config, unit_from_config)
 
 __all__ = ["run_sweep", "resume_sweep", "SweepResult", "train_cell"]
 

@@ -316,7 +316,13 @@ def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
     record = sweep_dir / PLAN_FILE
     fingerprint = plan.fingerprint()
     if record.exists():
-        stored = json.loads(record.read_text())
+        try:
+            stored = json.loads(record.read_text())
+        except (ValueError, UnicodeDecodeError):
+            stored = None
+        if not isinstance(stored, dict):
+            raise SweepError(f"{record} is not the plan record asp-dist tune writes (unreadable JSON); give this run "
+                             f"another --name, or restore the file")
         if stored.get("fingerprint") != fingerprint:
             raise SweepError(f"tune run {plan.name} was started with another plan (space {stored.get('space')}, "
                              f"settings {stored.get('settings')}); give this one another --name")
