@@ -172,3 +172,14 @@ def test_non_default_knobs_run_deterministically_and_restore(name, changes, tiny
     assert comparable(run_cell(spec)) == comparable(row)
     assert comparable(run_cell(spec, restore=states[0])) == comparable(row)
     assert comparable(row) != comparable(run_cell(tiny(name, method="asp", paired=2, train_steps=40)))
+
+
+def test_the_knobs_page_is_what_the_declarations_say():
+    """docs/knobs.md is generated from the knob declarations; a knob added, renamed or given another default or
+    range without regenerating it fails here."""
+    from asp_dist.commands.fields import KNOBS_PAGE, knobs_page
+
+    page = Path(__file__).resolve().parents[1] / KNOBS_PAGE
+    assert page.read_text() == knobs_page(), f"{KNOBS_PAGE} is stale: asp-dist fields --markdown > {KNOBS_PAGE}"
+    assert all(f"`{k.name}`" in page.read_text() for d in DOMAINS.values() if d.name in ("particles", "vae", "levers")
+               for k in d.knobs)
