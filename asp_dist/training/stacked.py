@@ -31,7 +31,7 @@ from asp_dist.domains import get_domain
 from asp_dist.knobs import unimplemented
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
-from asp_dist.training.methods import LossWeights, method_weights
+from asp_dist.training.methods import LossWeights, lambda_factor, method_weights
 from asp_dist.training.records import COL, TERMS, Records, member_terms  # noqa: F401  (TERMS, member_terms: re-exported)
 
 BETAS, EPS = (0.9, 0.999), 1e-8  # torch.optim.Adam's defaults
@@ -174,6 +174,25 @@ class PackRecords:
 
     def _draw_chunk(self) -> None:
         raise NotImplementedError
+
+    def _open_chunk(self, size: int) -> tuple[int, int, dict[int, int]]:
+        """The start of every _draw_chunk: the chunk covers the next `size` updates (fewer at the end); each
+        member's generator state at its start is kept (a checkpoint inside the chunk re-makes its draws from
+        them). Returns (first update, number of updates, member row -> its place among the ASP members)."""
+        start, S = self.step, min(size, self.train_steps - self.step)
+        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
+        self.chunk_start, self.chunk_end = start, start + S
+        return start, S, {i: a for a, i in enumerate(self.adv_rows)}
+
+    def _begin_update(self) -> tuple[int, dict[str, torch.Tensor] | None]:
+        """The opening of every packed train_step: refuse a finished pack, draw the next chunk's random numbers
+        when this update starts one, and say where the update is in its chunk (j) and whether it records its
+        diagnostics: `vals` is the dict to fill for _record, or None when this update records nothing."""
+        if self.step >= self.train_steps:
+            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
+        if self.step >= self.chunk_end:
+            self._draw_chunk()
+        return self.step - self.chunk_start, ({} if self.recording() else None)
 
     # ---- diagnostics, as Trainer.record / finish_curve_point / loss_columns ---------------------
     def _record(self, vals: dict[str, torch.Tensor], j: int) -> None:
@@ -327,16 +346,11 @@ class PackedTrainer(PackRecords):
     # ---- λ1 of the updates of a chunk ---------------------------------------------------------------
     def _lambda_chunk(self, start: int, S: int) -> None:
         """λ1 of updates [start, start + S) of each ASP member into lam_now[:S] (float64; allocated by the
-        subclass as (CHUNK, Ma)): w_unpaired · methods.lambda_factor, vectorised with the same float64
-        arithmetic (a Python float and a float64 element round alike)."""
-        steps = torch.arange(start, start + S, dtype=torch.float64)
+        subclass as (CHUNK, Ma)): w_unpaired · methods.lambda_factor, the reference's own schedule, once per
+        update of the chunk (a few µs a chunk), multiplied in float64 as the reference multiplies Python floats."""
         for a, i in enumerate(self.adv_rows):
             spec, w = self.members[i].spec, self.members[i].weights
-            if spec.lambda_unpaired_schedule == "constant":
-                factor = torch.ones(S, dtype=torch.float64)
-            else:
-                ramp = torch.clamp(steps / max(1.0, spec.lambda_schedule_frac * spec.train_steps), max=1.0)
-                factor = ramp if spec.lambda_unpaired_schedule == "warmup" else 1.0 - ramp
+            factor = torch.tensor([lambda_factor(spec, step) for step in range(start, start + S)], dtype=torch.float64)
             self.lam_now[:S, a] = w.unpaired * factor
 
     # ---- the end of every update ----------------------------------------------------------------------

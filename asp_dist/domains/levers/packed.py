@@ -242,11 +242,8 @@ class PackedLeverTrainer(PackedTrainer):
     def _draw_chunk(self) -> None:
         """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member,
         with the calls dqn_step and Trainer.train_step make, in their order."""
-        start, S = self.step, min(CHUNK, self.train_steps - self.step)
+        start, S, adv_slot = self._open_chunk(CHUNK)
         B, V, ub, ds = self.B, self.V, self.ub, self.disc_steps
-        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
-        self.chunk_start, self.chunk_end = start, start + S
-        adv_slot = {i: a for a, i in enumerate(self.adv_rows)}
         for i, m in enumerate(self.members):
             if not m.self_play:  # PC draws nothing
                 continue
@@ -280,14 +277,9 @@ class PackedLeverTrainer(PackedTrainer):
     # ---- one update of every member -------------------------------------------------------------
     @torch.no_grad()
     def train_step(self) -> None:
-        if self.step >= self.train_steps:
-            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
-        if self.step >= self.chunk_end:
-            self._draw_chunk()
-        j = self.step - self.chunk_start
+        j, vals = self._begin_update()
+        record = vals is not None
         M, B, H, V, n = self.M, self.B, self.H, self.V, self.n
-        record = self.recording()
-        vals: dict[str, torch.Tensor] | None = {} if record else None
 
         # ---- games of this update: fresh, replayed (after the first update), paired ---------------
         G = 0

@@ -247,11 +247,8 @@ class PackedParticleTrainer(PackedTrainer):
         """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member:
         per rollout step the Exp(1) of torch.multinomial and, when episodes end, spawn()'s uniforms;
         then the disc_steps batches of indices into U. The same calls the reference Trainer makes."""
-        start, S = self.step, min(CHUNK, self.train_steps - self.step)
+        start, S, adv_slot = self._open_chunk(CHUNK)
         Kr, B, T, ub, ds = self.Kr, self.B, self.T, self.ub, self.disc_steps
-        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
-        self.chunk_start, self.chunk_end = start, start + S
-        adv_slot = {i: a for a, i in enumerate(self.adv_rows)}
         for i, m in enumerate(self.members):
             if not m.self_play:  # PC draws nothing
                 continue
@@ -327,14 +324,9 @@ class PackedParticleTrainer(PackedTrainer):
     # ---- one update of every member -------------------------------------------------------------
     @torch.no_grad()
     def train_step(self) -> None:
-        if self.step >= self.train_steps:
-            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
-        if self.step >= self.chunk_end:
-            self._draw_chunk()
-        j = self.step - self.chunk_start
+        j, vals = self._begin_update()
+        record = vals is not None
         B, Kr, n = self.B, self.Kr, self.n
-        record = self.recording()
-        vals: dict[str, torch.Tensor] | None = {} if record else None
 
         # ---- 1. forward: rollout rows (B per step) with the paired rows after step 0's ------------
         if self.any_self_play:

@@ -214,11 +214,8 @@ class PackedVAETrainer(PackedTrainer):
         """The random draws of updates [step, step + CHUNK) (not past train_steps), member by member,
         with the calls the single-cell trainer makes, in its order: the self-play batch's indices
         (randint), z's noise (randn), then disc_steps batches of indices into U (randint)."""
-        start, S = self.step, min(CHUNK, self.train_steps - self.step)
+        start, S, adv_slot = self._open_chunk(CHUNK)
         B, d, ub, ds = self.B, self.d, self.ub, self.disc_steps
-        self.chunk_gen_states = [m.gen.get_state() for m in self.members]
-        self.chunk_start, self.chunk_end = start, start + S
-        adv_slot = {i: a for a, i in enumerate(self.adv_rows)}
         for i, m in enumerate(self.members):
             if not m.self_play:  # PC draws nothing
                 continue
@@ -239,14 +236,9 @@ class PackedVAETrainer(PackedTrainer):
     # ---- one update of every member -------------------------------------------------------------
     @torch.enable_grad()
     def train_step(self) -> None:
-        if self.step >= self.train_steps:
-            raise RuntimeError(f"the pack has finished its {self.train_steps} updates")
-        if self.step >= self.chunk_end:
-            self._draw_chunk()
-        j = self.step - self.chunk_start
+        j, vals = self._begin_update()
+        record = vals is not None
         M, B, n = self.M, self.B, self.n
-        record = self.recording()
-        vals: dict[str, torch.Tensor] | None = {} if record else None
         if not self.any_self_play and not n:  # nothing to learn in any member (PC without paired data)
             if record:
                 self._record({}, j)
