@@ -153,6 +153,7 @@ class PackRecords:
         self.active = [True] * self.M
         self.chunk_start = self.chunk_end = 0
         self.chunk_gen_states: list[torch.Tensor] = []
+        self._lambda_factors: list[torch.Tensor] | None = None  # each ASP member's λ1 factors (_lambda_chunk)
 
     def in_curve_window(self) -> bool:
         return self.records.in_curve_window(self.step)
@@ -346,12 +347,15 @@ class PackedTrainer(PackRecords):
     # ---- λ1 of the updates of a chunk ---------------------------------------------------------------
     def _lambda_chunk(self, start: int, S: int) -> None:
         """λ1 of updates [start, start + S) of each ASP member into lam_now[:S] (float64; allocated by the
-        subclass as (CHUNK, Ma)): w_unpaired · methods.lambda_factor, the reference's own schedule, once per
-        update of the chunk (a few µs a chunk), multiplied in float64 as the reference multiplies Python floats."""
+        subclass as (CHUNK, Ma)): w_unpaired · methods.lambda_factor, the reference's own schedule, multiplied in
+        float64 as the reference multiplies Python floats. The factors of a member's whole training are taken
+        from lambda_factor once (≈ 1 µs an update, once per cell) and sliced per chunk."""
+        if self._lambda_factors is None:
+            self._lambda_factors = [torch.tensor([lambda_factor(self.members[i].spec, step)
+                                                  for step in range(self.train_steps)], dtype=torch.float64)
+                                    for i in self.adv_rows]
         for a, i in enumerate(self.adv_rows):
-            spec, w = self.members[i].spec, self.members[i].weights
-            factor = torch.tensor([lambda_factor(spec, step) for step in range(start, start + S)], dtype=torch.float64)
-            self.lam_now[:S, a] = w.unpaired * factor
+            self.lam_now[:S, a] = self.members[i].weights.unpaired * self._lambda_factors[a][start:start + S]
 
     # ---- the end of every update ----------------------------------------------------------------------
     def _step_discriminators(self) -> None:
