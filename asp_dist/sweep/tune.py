@@ -193,9 +193,14 @@ class TrackerHub:
             self.pending, self.polled = self.actor.take_warnings.remote(), time.monotonic()
 
     def close(self, interrupted: bool) -> None:
-        """Wait for every point sent so far to be logged, then end the trackers' runs."""
+        """Wait for every point sent so far to be logged, then end the trackers' runs. The warnings of a poll still
+        in flight are printed first: the hub gave them to that request, and answers its requests in order."""
         try:
-            self._print(ray.get(self.actor.close.remote(interrupted), timeout=120))
+            closing = self.actor.close.remote(interrupted)
+            if self.pending is not None:
+                self._print(ray.get(self.pending, timeout=120))
+                self.pending = None
+            self._print(ray.get(closing, timeout=120))
         except Exception as e:  # noqa: BLE001 - a hub that cannot close never fails the sweep
             self.stream.write(f"asp-dist: warning: the trackers did not close cleanly ({type(e).__name__}: {e})\n")
         ray.kill(self.actor)
