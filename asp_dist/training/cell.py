@@ -9,8 +9,8 @@ Pure PyTorch, no Ray: the sweep service wraps this, tests call it directly. Phas
 
 A cell is the cell pipeline's unit of one (asp_dist.training.pipeline.run_unit) on its lone trainer
 (asp_dist.training.engines.lone_trainer: a particle or lever cell whose knobs its domain's packed trainer
-implements trains as a one-member pack of it, a VAE cell on its one-pass trainer, every other cell on the
-reference Trainer: autograd). The full training state can be checkpointed at any step and restored; a
+implements trains as a one-member pack of it, a VAE cell on its hand-derived trainer (or the one-pass one where
+that does not apply), every other cell on the reference Trainer: autograd). The full training state can be checkpointed at any step and restored; a
 restored run gives the same row as an uninterrupted one (all randomness flows through saved generators).
 """
 
