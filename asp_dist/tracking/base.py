@@ -9,9 +9,10 @@ which step the cell's run already holds, read back from the tracker's own storag
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar, TypeVar
 
 from asp_dist.errors import SpecError
 from asp_dist.tracking.cells import CellInfo
@@ -34,6 +35,9 @@ class TrackingSettings:
     dir: str | None = None  # where file-based trackers write (default: RESULTS/NAME/trackers)
     mlflow_uri: str | None = None  # MLflow tracking URI (default: MLFLOW_TRACKING_URI, else sqlite:///DIR/mlflow.db)
     wandb_project: str | None = None  # W&B project (default: WANDB_PROJECT, else "asp-dist")
+    # --connect-timeout: how long a tracker's server has to answer the check, and what bounds each of its calls
+    # during the sweep (MLflow's HTTP timeout, W&B's init_timeout). A run option, not recorded in tracking.json.
+    timeout_s: float = 20.0
 
     def resolved(self, default_dir: str | Path) -> "TrackingSettings":
         """Every default filled in: the directory, the MLflow URI, the W&B project."""
@@ -84,6 +88,41 @@ def check_writable(kind: str, where: Path) -> None:
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         what = "is not a directory" if not probe.is_dir() else "is not writable"
         raise TrackerError(f"--logger {kind}: cannot write to {where} ({probe} {what}); pass a writable --logger-dir")
+
+
+_T = TypeVar("_T")
+
+
+class NoAnswer(Exception):
+    """A call given up on by ``answer_within``."""
+
+
+def answer_within(seconds: float, call: Callable[[], _T]) -> _T:
+    """``call()``'s result or exception, or NoAnswer once `seconds` pass without either. The call runs in a daemon
+    thread: a client library's own timeouts and retries (or a resolver) cannot hold the check longer, and a call
+    still hanging when the process exits does not keep it alive."""
+    answer: list[tuple[bool, Any]] = []
+
+    def run() -> None:
+        try:
+            answer.append((True, call()))
+        except BaseException as e:  # noqa: BLE001 - handed to the caller
+            answer.append((False, e))
+
+    thread = threading.Thread(target=run, name="asp-dist-tracker-check", daemon=True)
+    thread.start()
+    thread.join(seconds)
+    if not answer:
+        raise NoAnswer(f"no answer within {seconds:g} s")
+    ok, value = answer[0]
+    if not ok:
+        raise value
+    return value
+
+
+def first_line(e: BaseException, limit: int = 200) -> str:
+    text = str(e).strip()
+    return (text.splitlines()[0] if text else type(e).__name__)[:limit]
 
 
 class Tracker:

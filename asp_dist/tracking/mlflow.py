@@ -7,20 +7,41 @@ Through MlflowClient on any tracking URI: by default a SQLite store in the track
 recommended local backend; its file store is in maintenance mode), or MLFLOW_TRACKING_URI / --mlflow-uri
 (a server, a database). A resumed sweep finds its parent run and each cell's run by tag and continues them:
 the last step a cell's run holds is read back from its metric histories.
+
+A server that does not answer is given up on in bounded time. The check (before anything runs) waits
+--connect-timeout for its answer. During the sweep each client call is bounded by MLflow's HTTP settings, set
+in the hub's process unless the user set them: a request times out after --connect-timeout and is retried twice
+(MLflow's defaults, 120 s and 7 retries with backoff, hold a call for minutes), so a server that goes away
+holds the hub for at most about 3 x --connect-timeout before the tracker is switched off.
 """
 
 from __future__ import annotations
 
+import math
+import os
+import re
 import time
 from typing import Any
 
-from asp_dist.tracking.base import (STOPPED, Tracker, TrackerError, TrackingSettings, check_writable, hparam,
-                                   metric_name, scalars)
+from asp_dist.tracking.base import (STOPPED, NoAnswer, Tracker, TrackerError, TrackingSettings, answer_within,
+                                   check_writable, first_line, hparam, metric_name, scalars)
 from asp_dist.tracking.cells import CellInfo
 
 ROLE, SWEEP, CELL = "asp_dist.role", "asp_dist.sweep", "asp_dist.cell_id"
 PARENT = "mlflow.parentRunId"
 BATCH = 900  # metrics per log_batch call (MLflow allows 1,000)
+SWEEP_RETRIES = 2  # retries of an HTTP request during the sweep (the check makes one try)
+
+
+def bound_http(timeout_s: float, retries: int) -> list[str]:
+    """Bound each MLflow HTTP request in this process: `timeout_s` (rounded up; MLflow takes whole seconds) to
+    connect and to read, `retries` retries one second apart, then twice that. Only the variables the user has
+    not set; returns the ones set here."""
+    bounds = {"MLFLOW_HTTP_REQUEST_TIMEOUT": str(max(1, math.ceil(timeout_s))),
+              "MLFLOW_HTTP_REQUEST_MAX_RETRIES": str(retries), "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1"}
+    added = [k for k in bounds if k not in os.environ]
+    os.environ.update({k: bounds[k] for k in added})
+    return added
 
 
 def _quiet() -> None:
@@ -58,20 +79,31 @@ class MLflowTracker(Tracker):
                 raise TrackerError(f"--logger mlflow with {uri} needs SQLAlchemy and Alembic ({e}); "
                                    f"pip install sqlalchemy alembic") from None
             return
-        try:  # a server or a database: it answers now, or the sweep does not start
-            from mlflow.tracking import MlflowClient
+        # A server or a database: it answers within --connect-timeout, or the sweep does not start.
+        from mlflow.tracking import MlflowClient
 
-            _quiet()
-            MlflowClient(tracking_uri=uri).search_experiments(max_results=1)
+        _quiet()
+        added = bound_http(settings.timeout_s, retries=0)
+        try:
+            answer_within(settings.timeout_s, lambda: MlflowClient(tracking_uri=uri).search_experiments(max_results=1))
+        except NoAnswer:
+            raise TrackerError(f"--logger mlflow: tracking URI {uri} did not answer within {settings.timeout_s:g} s; "
+                               f"check --mlflow-uri, or raise --connect-timeout") from None
         except Exception as e:  # noqa: BLE001 - whatever MLflow raises for a URI it cannot use
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise TrackerError(f"--logger mlflow: tracking URI {uri} cannot be used ({first[:200]})") from None
+            # MLflow wraps the OS's error in its own and requests' text: say the OS's when there is one
+            errno = re.search(r"\[Errno -?\d+\] [^'\")\]]+", str(e))
+            why = errno.group(0).strip() if errno else first_line(e)
+            raise TrackerError(f"--logger mlflow: tracking URI {uri} cannot be used ({why})") from None
+        finally:
+            for key in added:
+                os.environ.pop(key, None)
 
     def start(self) -> None:
         from mlflow.tracking import MlflowClient
 
         _quiet()
-
+        if not self.settings.mlflow_uri.startswith("sqlite:"):  # a server: no call may hold the hub for minutes
+            bound_http(self.settings.timeout_s, SWEEP_RETRIES)
         self.client = MlflowClient(tracking_uri=self.settings.mlflow_uri)
         experiment = self.client.get_experiment_by_name(self.sweep)
         self.experiment = (experiment.experiment_id if experiment is not None

@@ -5,8 +5,10 @@ resolved spec; history = the curve points at their update step; summary = the fi
 
 W&B's mode is the user's (WANDB_MODE); without one and without W&B credentials the runs are written offline
 under DIR/wandb (``wandb sync DIR/wandb/offline-run-*`` uploads them later), so a sweep never waits on the
-network or a login prompt. A resumed cell's last step is read back from its run files (W&B's LevelDB-log
-records, W&B's own protobuf messages: ``history_steps``).
+network or a login prompt. Online, the check logs in (W&B's own, verified against the server) within
+--connect-timeout, and each cell's ``wandb.init`` waits at most that long (``init_timeout``). A resumed cell's
+last step is read back from its run files (W&B's LevelDB-log records, W&B's own protobuf messages:
+``history_steps``).
 """
 
 from __future__ import annotations
@@ -17,8 +19,11 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from asp_dist.hashing import stable_hash
-from asp_dist.tracking.base import Tracker, TrackingSettings, hparam, metric_name, scalars
+from asp_dist.tracking.base import (NoAnswer, Tracker, TrackerError, TrackingSettings, answer_within, first_line,
+                                   hparam, metric_name, scalars)
 from asp_dist.tracking.cells import CellInfo
+
+LOCAL_MODES = ("offline", "dryrun", "disabled")  # W&B modes that do not reach a server
 
 
 def _mode() -> str:
@@ -40,6 +45,27 @@ class WandbTracker(Tracker):
         self.runs: dict[str, Any] = {}
         self.mode = _mode()
 
+    @classmethod
+    def check(cls, settings: TrackingSettings) -> None:
+        super().check(settings)
+        if _mode() in LOCAL_MODES:
+            return
+        import wandb
+
+        where = os.environ.get("WANDB_BASE_URL") or "W&B's server"
+        try:  # W&B's own login check, verified against the server; never a prompt
+            logged_in = answer_within(settings.timeout_s, lambda: wandb.login(verify=True, prompt=False))
+        except NoAnswer:
+            raise TrackerError(f"--logger wandb: {where} did not answer within {settings.timeout_s:g} s; check "
+                               f"WANDB_BASE_URL and the network, raise --connect-timeout, or set "
+                               f"WANDB_MODE=offline") from None
+        except Exception as e:  # noqa: BLE001 - whatever W&B raises for a server or key it cannot use
+            raise TrackerError(f"--logger wandb: cannot log in to {where} ({first_line(e)}); or set "
+                               f"WANDB_MODE=offline") from None
+        if not logged_in:
+            raise TrackerError("--logger wandb: W&B online mode needs credentials (WANDB_API_KEY or `wandb login`); "
+                               "or set WANDB_MODE=offline")
+
     def open_cell(self, cell: CellInfo) -> int | None:
         import wandb
 
@@ -51,8 +77,13 @@ class WandbTracker(Tracker):
             project=self.settings.wandb_project, dir=self.settings.dir, mode=self.mode, id=run_id, resume="allow",
             name=cell.run_name, group=cell.group, job_type=cell.treatment, config=config,
             tags=[f"trial={cell.trial}", f"sweep={cell.sweep}", f"rev={cell.revision[:12]}"],
-            reinit="create_new", settings=wandb.Settings(console="off", x_disable_stats=True, silent=True))
+            reinit="create_new", settings=wandb.Settings(console="off", x_disable_stats=True, silent=True,
+                                                         **self._timeout()))
         return last
+
+    def _timeout(self) -> dict[str, float]:
+        """Online, a cell's init waits --connect-timeout for the server (W&B's default: 90 s); offline, W&B's."""
+        return {} if self.mode in LOCAL_MODES else {"init_timeout": float(self.settings.timeout_s)}
 
     def log(self, cell: CellInfo, points: list[dict[str, Any]]) -> None:
         run = self.runs[cell.cell_id]
