@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Sequence
 
@@ -22,10 +23,15 @@ from asp_dist.errors import SpecError
 COMMANDS = (cell, theory, fields, check_domain, sweep, status, tune, replay, stats, compare, query, power)
 
 
+# A bound of a `type=` helper (asp_dist.commands.common): "argument --seed/-s: must be >= 0" -> "--seed must be >= 0".
+_BOUND = re.compile(r"argument (--?[\w-]+)(?:/--?[\w-]+)*: (?=must |is empty)")
+
+
 class Parser(argparse.ArgumentParser):
     """argparse's own errors in the same one-line form as every other user error."""
 
     def error(self, message: str):
+        message = _BOUND.sub(r"\1 ", message, count=1)
         self.exit(2, f"asp-dist: error: {message} (see `{self.prog} --help`)\n")
 
 

@@ -1,9 +1,12 @@
-"""Crash-safe file writes: readers see the old file or the new one, never half of one."""
+"""Crash-safe file writes: readers see the old file or the new one, never half of one (or of a set of files)."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pyarrow as pa
@@ -48,3 +51,52 @@ def atomic_write(path: Path, data: bytes | str) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+@contextmanager
+def staged_directory(final: Path) -> Iterator[Path]:
+    """A fresh directory to write a set of files into, moved into `final` only when the block succeeds: a
+    block that fails (a full disk, an error, Ctrl-C) leaves `final` exactly as it was.
+
+    The stage is a hidden folder inside `final` (same filesystem: every move is a rename), and its last part
+    has `final`'s name, so that paths relative to it and its name read as they will in `final`."""
+    final = Path(final)
+    holder = Path(tempfile.mkdtemp(prefix=".staging-", dir=final))
+    stage = holder / (final.name or final.resolve().name or "out")
+    stage.mkdir()
+    try:
+        yield stage
+        move_files_into(stage, final, backup=holder / ".replaced")
+    finally:
+        shutil.rmtree(holder, ignore_errors=True)
+
+
+def move_files_into(src: Path, dest: Path, backup: Path) -> None:
+    """Every file under `src` renamed to the same place under `dest`, replacing any there; all or nothing:
+    replaced files wait in `backup` until the last rename, and a failed rename puts every earlier one back."""
+    done: list[tuple[Path, Path | None]] = []  # (target, its old file in backup, or None)
+    made: list[Path] = []  # directories created under dest
+    try:
+        for path in sorted(p for p in src.rglob("*") if not p.is_dir()):
+            rel = path.relative_to(src)
+            target = dest / rel
+            for parent in reversed(rel.parents[:-1]):  # stats/, figures/: shallowest first
+                if not (dest / parent).is_dir():
+                    (dest / parent).mkdir()
+                    made.append(dest / parent)
+            old = None
+            if target.exists() or target.is_symlink():
+                old = backup / rel
+                old.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(target, old)
+            done.append((target, old))
+            os.replace(path, target)
+    except BaseException:
+        for target, old in reversed(done):
+            if old is not None:
+                os.replace(old, target)
+            else:
+                target.unlink(missing_ok=True)
+        for directory in reversed(made):
+            directory.rmdir()
+        raise

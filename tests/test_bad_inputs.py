@@ -165,6 +165,8 @@ for flag, value in (("paired", "3"), ("paired", "true"), ("domain", "vae"), ("me
 case("cell-threads-0", [*CELL, "--threads", "0"], "--threads must be >= 1")
 case("cell-threads-neg", [*CELL, "--threads", "-2"], "--threads must be >= 1")
 case("cell-threads-text", [*CELL, "--threads", "two"], "invalid int value")
+case("cell-threads-huge", [*CELL, "--threads", "100000000000"], "--threads must be <= 1024")
+case("cell-out-empty", [*CELL, "--out", ""], "--out is empty")
 case("cell-domain", ["cell", "--domain", "chess", "--method", "asp", "--paired", "1"], "unknown domain 'chess'")
 case("cell-method", ["cell", "--domain", "signaling", "--method", "xsp", "--paired", "1"], "unknown method 'xsp'")
 case("cell-paired-neg", ["cell", "--domain", "signaling", "--method", "asp", "--paired", "-1"], "paired must be")
@@ -230,6 +232,7 @@ case("theory-A-0", ["theory", "-S", "4", "-A", "0"], "must be >= 1")
 case("theory-S-neg", ["theory", "-S", "-3", "-A", "2"], "must be >= 1")
 case("theory-S-text", ["theory", "-S", "x", "-A", "2"], "invalid int value")
 case("theory-A-float", ["theory", "-S", "4", "-A", "2.5"], "invalid int value")
+case("theory-S-0-named", ["theory", "--states", "0", "-A", "2"], "--states must be >= 1, got 0")
 
 # fields
 case("fields-domain", ["fields", "--domain", "chess"], "unknown domain 'chess'")
@@ -246,6 +249,16 @@ case("sweep-ckpt-0", [*S, "--checkpoint-every", "0"], "--checkpoint-every must b
 case("sweep-ckpt-nan", [*S, "--checkpoint-every", "nan"], "--checkpoint-every must be > 0")
 case("sweep-ckpt-inf", [*S, "--checkpoint-every", "inf"], "--checkpoint-every must be > 0")
 case("sweep-workers-text", [*S, "--workers", "two"], "invalid int value: 'two'")
+case("sweep-workers-huge", [*S, "--workers", "1000000"], "--workers must be <= 10000, got 1000000")
+case("sweep-failures-huge", [*S, "--max-failures", "1000000"], "--max-failures must be <= 100")
+case("sweep-ckpt-huge", [*S, "--checkpoint-every", "1e300"], "--checkpoint-every must be <= 86400 seconds")
+case("sweep-connect-huge", [*S, "--connect-timeout", "1e300"], "--connect-timeout must be <= 86400 seconds")
+case("sweep-connect-0", [*S, "--connect-timeout", "0"], "--connect-timeout must be > 0 seconds")
+case("sweep-pack-size-0", [*S, "--pack", "trial", "--pack-size", "0"], "--pack-size must be >= 1, got 0")
+for flag in ("--logger-dir", "--mlflow-uri", "--wandb-project", "--logger", "--ray-temp-dir"):
+    case(f"sweep-empty{flag}", [*S, flag, ""], f"{flag} is empty")  # was: the default, silently
+case("sweep-empty-results", ["sweep", "smoke", "--results", ""], "--results is empty")  # was: the current directory
+case("sweep-blank-results", ["sweep", "smoke", "--results", "  "], "--results is empty")
 case("sweep-ray-temp-file", [*S, "--name", "new", "--ray-temp-dir", "{scratch}/afile"], "is not a directory")
 case("sweep-ray-temp-too-long", [*S, "--name", "new", "--ray-temp-dir", "/tmp/" + "x" * 60],
      "too long for Ray's socket paths")
@@ -289,8 +302,11 @@ for flags, needle in ((["--workers", "0"], "--workers must be >= 1"), (["--worke
                       (["--checkpoint-every", "nan"], "--checkpoint-every must be > 0"),
                       (["--ray-temp-dir", "{scratch}/existing.csv"], "is not a directory"),
                       (["--address", " "], "--address is empty"),
-                      (["--max-failures", "many"], "invalid int value")):
+                      (["--max-failures", "many"], "invalid int value"),
+                      (["--connect-timeout", "inf"], "--connect-timeout must be > 0 seconds and finite"),
+                      (["--logger-dir", ""], "--logger-dir is empty")):
     case(f"resume-{flags[0]}={flags[1]}", ["resume", "tiny", *R, *flags], needle)
+case("resume-empty-results", ["resume", "tiny", "--results", ""], "--results is empty")
 for name, needle in {"ghost": "no sweep 'ghost'", "trunc": "is not valid JSON", "notjson": "is not valid JSON",
                      "listjson": "list of cell ids under 'cells'", "nospecs": "one spec under 'specs'",
                      "misaligned": "one spec under 'specs'", "specnotdict": "every spec needs a domain",
@@ -307,6 +323,7 @@ for name, needle in {"ghost": "no sweep 'ghost'", "trunc": "is not valid JSON", 
                      "afile": "is not a sweep directory", "../tiny": "invalid sweep name", "": "invalid sweep name",
                      "a/b": "invalid sweep name"}.items():
     case(f"status-{name or 'empty'}", ["status", name, *R], needle)
+case("status-empty-results", ["status", "tiny", "--results", ""], "--results is empty")
 
 # query
 Q = ["query", "tiny", *R]
@@ -341,6 +358,8 @@ case("query-out-deep-in-sweep", [*Q, "--out", "{sweep}/curves/new/rows.csv"], "i
 case("query-out-dir", [*Q, "--out", "{scratch}"], "is a directory")
 case("query-out-no-dir", [*Q, "--out", "{root}/no/such/rows.csv"], "does not exist")
 case("query-out-empty", [*Q, "--out", ""], "--out is empty")
+case("query-limit-huge", [*Q, "--limit", "99999999999999999999"], "--limit must be <= 9223372036854775807")
+case("query-empty-sweep", ["query", "", *R], "argument SWEEP: is empty")
 case("query-ghost", ["query", "ghost", *R], "does not exist")
 case("query-not-parquet", ["query", "{scratch}/existing.csv"], "is not a .parquet file")
 case("query-garbage-parquet", ["query", "{scratch}/existing.parquet"], "cannot read")
@@ -354,7 +373,11 @@ for flags, needle in ((["--alpha", "0"], "--alpha must be between 0 and 1"),
                       (["--alpha", "1"], "--alpha must be between 0 and 1"),
                       (["--alpha", "nan"], "--alpha must be between 0 and 1"),
                       (["--alpha", "-0.1"], "--alpha must be between 0 and 1"),
-                      (["--bootstrap", "10"], "--bootstrap must be at least 100"),
+                      (["--bootstrap", "10"], "--bootstrap must be >= 100, got 10"),
+                      (["--bootstrap", "1000000000"], "--bootstrap must be <= 100000, got 1000000000"),
+                      (["--seed", str(2**31)], "--seed must be <= 2147483647"),
+                      (["--out", ""], "--out is empty"),  # was: the stats written into the sweep directory
+                      (["--out", "  "], "--out is empty"),
                       (["--seed", "-1"], "--seed must be >= 0"),
                       (["--metric", "eval_nope"], "--metric: unknown column 'eval_nope'"),
                       (["--metric", " "], "--metric is empty"),
@@ -368,6 +391,7 @@ for flags, needle in ((["--alpha", "0"], "--alpha must be between 0 and 1"),
                       (["--paired-range", "chess=1-2"], "unknown domain 'chess'"),
                       (["--bootstrap", "many"], "invalid int value")):
     case(f"stats-{flags[0]}={flags[1]}", [*ST, *flags], needle)
+case("stats-sweep-empty", ["stats", "", *R, "--no-figures"], "argument SWEEP: is empty")
 case("stats-ghost", ["stats", "ghost", *R, "--no-figures"], "does not exist")
 case("stats-out-inside-cells", [*ST, "--out", "{results}/tiny/cells/stats"], "lies inside the sweep")
 case("stats-out-is-a-file", [*ST, "--out", "{scratch}/existing.csv"], "cannot create the output directory")
@@ -379,12 +403,19 @@ case("stats-formats-empty", [*ST, "--formats", ","], "--formats ',' is empty")
 case("compare-ghost", ["compare", "ghost", "tiny", *R], "ghost does not exist")
 case("compare-not-parquet", ["compare", "{scratch}/existing.csv", "tiny", *R], "is not a .parquet file")
 case("compare-garbage-parquet", ["compare", "tiny", "{scratch}/existing.parquet", *R], "cannot read")
+case("compare-bootstrap-low", ["compare", "tiny", "tiny", *R, "--bootstrap", "10"], "--bootstrap must be >= 100")
+case("compare-bootstrap-huge", ["compare", "tiny", "tiny", *R, "--bootstrap", "1000000000"],
+     "--bootstrap must be <= 100000")
+case("compare-seed-neg", ["compare", "tiny", "tiny", *R, "--seed=-1"], "--seed must be >= 0, got -1")
+case("compare-empty-sweep", ["compare", "", "tiny", *R], "argument SWEEP_A: is empty")
 case("compare-margin", ["compare", "tiny", "tiny", *R, "--margin", "abc"], "--margin 'abc'")
 
 # select
 case("select-domain", ["select", "tiny", *R, "--domain", "chess"], "unknown domain 'chess'")
 case("select-resamples", ["select", "tiny", *R, "--domain", "signaling", "--resamples", "10"],
      "--resamples must be >= 100")
+case("select-resamples-huge", ["select", "tiny", *R, "--domain", "signaling", "--resamples", "1000000000"],
+     "--resamples must be <= 100000, got 1000000000")
 case("select-no-rows", ["select", "tiny", *R, "--domain", "vae"], "no vae rows")
 case("select-ghost", ["select", "ghost", *R, "--domain", "signaling"], "does not exist")
 case("select-not-parquet", ["select", "{scratch}/existing.csv", "--domain", "signaling"], "is not a .parquet file")
@@ -394,6 +425,50 @@ case("select-no-domain", ["select", "tiny", *R], "required: --domain")
 case("check-domain-unknown", ["check-domain", "chess"], "unknown domain 'chess'")
 case("check-domain-bad-knob", ["check-domain", "signaling", "--set", "signaling_tokens=0"], "signaling_tokens")
 case("check-domain-unknown-knob", ["check-domain", "signaling", "--set", "nope=1"], "unknown cell field 'nope'")
+for flag, value, needle in (("domain", "vae", "the domain is check-domain's NAME"),
+                            ("method", "pc", "check-domain runs every method itself"),
+                            ("paired", "3", "check-domain chooses the paired counts itself")):
+    case(f"check-domain-set-{flag}", ["check-domain", "signaling", "--set", f"{flag}={value}"],
+         f"--set '{flag}={value}': {needle}")
+
+# power (refused before the rows are read)
+P = ["power", "tiny", *R, "--domain", "signaling", "--a", "asp", "--b", "pc"]
+for flags, needle in ((["--seed=-1"], "--seed must be >= 0, got -1"),
+                      (["--seed", str(2**40)], "--seed must be <= 2147483647"),
+                      (["--fresh-from=-5"], "--fresh-from must be >= 0, got -5"),
+                      (["--target", "0"], "--target must be between 0 and 1 (both excluded), got 0"),
+                      (["--target", "1"], "--target must be between 0 and 1"),
+                      (["--target", "nan"], "--target must be between 0 and 1"),
+                      (["--target", "1.5"], "--target must be between 0 and 1"),
+                      (["--alpha", "0"], "--alpha must be between 0 and 1"),
+                      (["--alpha", "inf"], "--alpha must be between 0 and 1"),
+                      (["--resamples", "10"], "--resamples must be >= 100, got 10"),
+                      (["--resamples", "1000000000"], "--resamples must be <= 100000"),
+                      (["--resamples", "many"], "invalid int value: 'many'"),
+                      (["--treatments", ""], "--treatments is empty")):
+    case(f"power-{'='.join(flags)}", [*P, *flags], needle)
+case("power-empty-sweep", ["power", "", *R, "--domain", "signaling", "--a", "asp", "--b", "pc"],
+     "argument SWEEP: is empty")
+
+# replay (refused before the manifest is read)
+case("replay-empty-sweep", ["replay", "", "some-cell", *R], "argument SWEEP: is empty")
+case("replay-empty-cell", ["replay", "tiny", "", *R], "argument CELL_ID: is empty")
+case("replay-empty-results", ["replay", "tiny", "some-cell", "--results", ""], "--results is empty")
+
+# tune (its flags, before the space is read)
+TU = ["tune", "tune-particles", *R]
+for flags, needle in ((["--budget", "0"], "--budget must be >= 1, got 0"),
+                      (["--budget", "1000000000"], "--budget must be <= 100000"),
+                      (["--seed=-1"], "--seed must be >= 0"),
+                      (["--seed", str(2**32)], "--seed must be <= 2147483647"),
+                      (["--workers", "0"], "--workers must be >= 1"),
+                      (["--max-failures=-1"], "--max-failures must be >= 0"),
+                      (["--checkpoint-every", "0"], "--checkpoint-every must be > 0 seconds"),
+                      (["--checkpoint-every", "1e300"], "--checkpoint-every must be <= 86400 seconds"),
+                      (["--name", ""], "--name is empty"),  # was: the space's name, silently
+                      (["--ray-temp-dir", ""], "--ray-temp-dir is empty"),
+                      (["--results", ""], "--results is empty")):
+    case(f"tune-{'='.join(flags)}", [*TU, *flags], needle)
 
 
 def test_there_are_at_least_a_hundred_cases_over_every_subcommand():
@@ -401,7 +476,7 @@ def test_there_are_at_least_a_hundred_cases_over_every_subcommand():
     assert len({c[0] for c in CASES}) == len(CASES), "case ids must be unique"
     commands = {argv[0] for _, argv, _, _ in CASES}
     assert commands == {"cell", "theory", "fields", "sweep", "resume", "status", "stats", "query", "select",
-                        "compare", "check-domain"}
+                        "compare", "check-domain", "power", "replay", "tune"}
 
 
 @pytest.mark.parametrize("argv, needle, env", [c[1:] for c in CASES], ids=[c[0] for c in CASES])

@@ -100,3 +100,25 @@ def test_replay_refuses_what_it_cannot_replay_in_one_line(tmp_path, capsys):
     store.cell_path(sweep, specs[0].domain, specs[0].method, specs[0].cell_id).unlink()
     assert main(["replay", str(sweep), specs[0].cell_id]) == 2
     assert "has no row" in capsys.readouterr().err
+
+
+def test_a_refusal_right_after_reading_the_row_exits_2_not_134(tmp_path):
+    """The refusal of an edited row comes a moment after pyarrow read it. Read through a Python file object, an
+    Arrow pool thread still dropping that file took the GIL while the interpreter finalized and died in a C++
+    destructor (std::terminate, exit 134 after the right line): 8 runs of 20 on 2026-12-06, none since the row is
+    read by its path. The command's own process, as a user runs it, several times."""
+    import os
+    import subprocess
+    import sys
+
+    sweep, specs = lone_sweep(tmp_path, stored_base=True)
+    spec = specs[1]
+    path = store.cell_path(sweep, spec.domain, spec.method, spec.cell_id)
+    table = pq.read_table(path)
+    pq.write_table(table.set_column(table.schema.get_field_index("pack"), "pack", [["edited-pack"]]), path)
+    for _ in range(4):
+        proc = subprocess.run([sys.executable, "-m", "asp_dist", "replay", str(sweep), spec.cell_id],
+                              capture_output=True, text=True, timeout=300, check=False, env=dict(os.environ))
+        lines = proc.stderr.splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert lines[0].startswith("asp-dist: error: cell ") and "was trained in pack edited-pack" in lines[0]

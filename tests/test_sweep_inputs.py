@@ -16,7 +16,10 @@ from asp_dist.sweep.spaces import expand
 
 
 def run_cli(capsys, *argv):
-    code = main(list(argv))
+    try:
+        code = main(list(argv))
+    except SystemExit as e:  # argparse's own errors, the bounds of a flag's type among them
+        code = e.code
     err = capsys.readouterr().err
     return code, err
 

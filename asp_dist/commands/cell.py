@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from asp_dist.commands.common import check_data, parse_overrides
+from asp_dist.commands.common import check_data, int_between, non_empty, parse_overrides, refuse_set
 from asp_dist.errors import SpecError
 from asp_dist.spec import CellSpec
 
@@ -42,12 +42,7 @@ CELL_FLAGS = ("domain", "method", "paired", "trial")  # the fields `asp-dist cel
 
 
 def cmd_cell(args: argparse.Namespace) -> int:
-    if args.threads < 1:
-        raise SpecError(f"--threads must be >= 1, got {args.threads}")
-    for item in args.set:
-        key = item.partition("=")[0].strip()
-        if key in CELL_FLAGS:
-            raise SpecError(f"--set {item!r}: {key} is a flag of `asp-dist cell`; give it as --{key} instead")
+    refuse_set(args.set, {k: f"{k} is a flag of `asp-dist cell`; give it as --{k} instead" for k in CELL_FLAGS})
     overrides = parse_overrides(args.set)
     spec = CellSpec(domain=args.domain, method=args.method, paired=args.paired, trial=args.trial,
                     **overrides).resolved()
@@ -106,7 +101,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trial", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any cell field (see `asp-dist fields`); repeatable")
-    p.add_argument("--out", help="also write the row to this new .parquet file")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--out", type=non_empty, help="also write the row to this new .parquet file")
+    # torch.set_num_threads fails past 2^31, and threads beyond the cores only slow a cell down
+    p.add_argument("--threads", type=int_between(1, 1024), default=1, help="torch threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=cmd_cell)

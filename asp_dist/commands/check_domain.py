@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from asp_dist.commands.common import parse_overrides
+from asp_dist.commands.common import parse_overrides, refuse_set
 from asp_dist.errors import SpecError
 from asp_dist.spec import CellSpec
 
@@ -17,6 +17,10 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
     from asp_dist.method_registry import method_order
     from asp_dist.training.cell import run_cell
 
+    # The checker sets these itself: the domain is NAME, and it runs every method at two paired counts.
+    refuse_set(args.set, {"domain": "the domain is check-domain's NAME argument; give it there",
+                          "method": "check-domain runs every method itself; leave method out",
+                          "paired": "check-domain chooses the paired counts itself (4, then 2); leave paired out"})
     domain = get_domain(args.name)  # a plugin that did not load: its one line
     spec = CellSpec(domain=args.name, method="asp", paired=4, **{**domain.smoke, **parse_overrides(args.set)})
     spec.resolved()  # a bad knob value: SpecError, one line

@@ -6,7 +6,15 @@ from __future__ import annotations
 import argparse
 import re
 
-from asp_dist.commands.common import add_results
+from asp_dist.commands.common import (
+    RESAMPLES,
+    SEED,
+    add_results,
+    float_between,
+    int_between,
+    non_empty,
+    non_empty_argument,
+)
 from asp_dist.errors import SpecError
 
 
@@ -26,10 +34,6 @@ def cmd_power(args: argparse.Namespace) -> int:
     from asp_dist.analysis import power
     from asp_dist.results.query import load_rows
 
-    if args.resamples < 100:
-        raise SpecError(f"--resamples must be >= 100, got {args.resamples}")
-    if not 0 < args.alpha < 1:
-        raise SpecError(f"--alpha must be between 0 and 1, got {args.alpha}")
     paired = _paired_range(args.paired)
     rows = load_rows(args.sweeps, results=args.results)
     treatments = [t for t in args.treatments.split(",") if t] if args.treatments else None
@@ -48,8 +52,6 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     if args.domain not in DOMAINS:
         raise SpecError(f"unknown domain {args.domain!r}; choose one of {', '.join(DOMAINS)}")
-    if args.resamples < 100:
-        raise SpecError(f"--resamples must be >= 100, got {args.resamples}")
     rows = load_rows(args.sweeps, results=args.results)
     if not (rows["domain"] == args.domain).any():
         raise SpecError(f"no {args.domain} rows in {', '.join(args.sweeps)}")
@@ -67,29 +69,30 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "than B' over a paired range, at the sweep's trial count and at larger ones, by "
                                    "resampling whole trials; the trial count for --target and the trial range to "
                                    "add (asp_dist/analysis/power.py).")
-    p.add_argument("sweeps", nargs="+", metavar="SWEEP")
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP", type=non_empty_argument)
     p.add_argument("--domain", required=True)
     p.add_argument("--a", required=True, metavar="TREATMENT", help="the treatment expected better, e.g. asp")
     p.add_argument("--b", required=True, metavar="TREATMENT", help="the one it is compared with, e.g. osp")
-    p.add_argument("--treatments", default=None, metavar="T1,T2,...",
+    p.add_argument("--treatments", type=non_empty, default=None, metavar="T1,T2,...",
                    help="the treatments the test ranks (default: every one in range, as the stats job)")
     p.add_argument("--paired", default=None, metavar="LO-HI", help="paired range (default: all in the rows)")
     p.add_argument("--condition", default=None, help="the condition, as the report names it (e.g. vae_latent_dim=8)")
     p.add_argument("--test", default="friedman-nemenyi", choices=("friedman-nemenyi", "wilcoxon-holm"))
     p.add_argument("--metric", default="eval_mixed")
-    p.add_argument("--alpha", type=float, default=0.05)
-    p.add_argument("--target", type=float, default=0.8, help="the power to reach (default 0.8)")
-    p.add_argument("--resamples", type=int, default=1000, help="resamples per trial count (default 1000)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fresh-from", type=int, default=None, metavar="TRIAL",
+    p.add_argument("--alpha", type=float_between(0, 1), default=0.05)
+    p.add_argument("--target", type=float_between(0, 1), default=0.8, help="the power to reach (default 0.8)")
+    p.add_argument("--resamples", type=RESAMPLES, default=1000, help="resamples per trial count (default 1000)")
+    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--fresh-from", type=int_between(0, 2**63 - 1, "trial ids are 64-bit"), default=None,
+                   metavar="TRIAL",
                    help="also print the trial range of a replication on fresh trials from this id (e.g. 2000)")
     add_results(p)
     p.set_defaults(func=cmd_power)
 
     p = sub.add_parser("select", help="the reproduction study's selection and power rules on a calibration sweep "
                                       "(docs/reproduction.md)")
-    p.add_argument("sweeps", nargs="+", metavar="SWEEP")
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP", type=non_empty_argument)
     p.add_argument("--domain", required=True, help="particles | vae | levers | signaling")
-    p.add_argument("--resamples", type=int, default=5000, help="bootstrap resamples of the power estimate")
+    p.add_argument("--resamples", type=RESAMPLES, default=5000, help="bootstrap resamples of the power estimate")
     add_results(p)
     p.set_defaults(func=cmd_select)

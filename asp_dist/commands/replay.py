@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from asp_dist.commands.common import add_results
+from asp_dist.commands.common import add_results, non_empty_argument
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -24,7 +24,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "sweep has it), and report which non-volatile columns of its row differ and what "
                                    "differs in the row's provenance. Writes nothing. Exit 0 identical, 1 a column "
                                    "differs, 2 bad input.")
-    p.add_argument("sweep", metavar="SWEEP", help="sweep name (under --results) or directory")
-    p.add_argument("cell_id", metavar="CELL_ID", help="the cell (`asp-dist query SWEEP --columns cell_id` lists them)")
+    p.add_argument("sweep", metavar="SWEEP", type=non_empty_argument, help="sweep name (under --results) or directory")
+    p.add_argument("cell_id", metavar="CELL_ID", type=non_empty_argument,
+                   help="the cell (`asp-dist query SWEEP --columns cell_id` lists them)")
     add_results(p)
     p.set_defaults(func=cmd_replay)

@@ -11,8 +11,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from asp_dist.commands.common import add_results
-from asp_dist.errors import SpecError
+from asp_dist.commands.common import RESAMPLES, SEED, add_results, float_between, non_empty, non_empty_argument
+from asp_dist.errors import DiskFull, SpecError, is_disk_full
 from asp_dist.results import store
 from asp_dist.results.location import is_remote
 
@@ -83,6 +83,8 @@ def check_stats_out(out: str) -> Path:
     """Refuse a stats --out that lies inside a sweep's tree or is a file, before any work is done."""
     from asp_dist.results.query import sweep_containing
 
+    if not out.strip():  # "" would be the current directory
+        raise SpecError("--out is empty; name a directory or leave it out (the default: the sweep's directory)")
     path = Path(out).expanduser()
     inside = sweep_containing(path)
     if inside is not None:
@@ -93,22 +95,38 @@ def check_stats_out(out: str) -> Path:
     return path
 
 
-def stats_output_dir(inputs: Sequence[Path], out: str | None) -> Path:
+def stats_output_dir(inputs: Sequence[Path], out: str | None) -> tuple[Path, Path | None]:
     """--out, or the one sweep (or directory) given; the stats job never guesses among several inputs.
-    A sweep's own directory may hold its stats (the default); a folder inside its tree may not."""
-    if out:
+    A sweep's own directory may hold its stats (the default); a folder inside its tree may not.
+    Returns it and the first directory of it that this run created (None: it existed), to remove on failure."""
+    if out is not None:
         path = check_stats_out(out)
     elif len(inputs) == 1 and inputs[0].is_dir():
         path = inputs[0]
     else:
         raise SpecError("several inputs or single files: say where to write the stats with --out DIR")
+    created = next((p for p in reversed([path, *path.parents]) if not p.exists()), None)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise SpecError(f"cannot create the output directory {path} ({e.strerror or e})") from None
     if not os.access(path, os.W_OK):
+        _remove_created(created, path)
         raise SpecError(f"output directory {path} is not writable; choose another with --out")
-    return path
+    return path, created
+
+
+def _remove_created(created: Path | None, path: Path) -> None:
+    """The empty directories this run made for --out, from `path` up to `created`."""
+    if created is None:
+        return
+    for directory in [path, *path.parents]:
+        try:
+            directory.rmdir()
+        except OSError:
+            return
+        if directory == created:
+            return
 
 
 def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None, figures: bool = True,
@@ -117,58 +135,42 @@ def run_stats_job(sweeps: Sequence[str | Path], out: str | None = None, cfg=None
     """The whole stats job: read rows, compute tables, write stats/, figures/ and the report in `formats`
     (report.md, report.html, stats/*.tex). Returns report.md (else report.html, else stats/).
     For a single sweep on S3 (and no --out) they go beside it in the bucket."""
+    from asp_dist.fsutil import staged_directory
     from asp_dist.results.query import find_inputs
 
     find_inputs(sweeps, results)  # a missing or empty input is the first thing to report
     located = [store.locate_sweep(s, results) for s in sweeps]
-    scratch = upload_to = None
-    if not out and len(located) == 1 and is_remote(located[0]):
+    scratch = upload_to = created = None
+    if out is None and len(located) == 1 and is_remote(located[0]):
         # A sweep on S3 keeps its stats beside it in the bucket: written to scratch, then uploaded.
         import tempfile
 
         scratch = tempfile.TemporaryDirectory(prefix="asp-stats-")
         upload_to, out_dir = located[0], Path(scratch.name)
     else:
-        out_dir = stats_output_dir(located, out)
+        out_dir, created = stats_output_dir(located, out)
+    start = time.perf_counter()
     try:
-        return _stats_job(located, out_dir, upload_to, cfg, figures, command, log, formats)
+        # Every file of this run is written to a stage and moved into out_dir only once all are written: a run
+        # that fails midway (a full disk, an error, Ctrl-C) leaves out_dir exactly as it was.
+        with staged_directory(out_dir) as stage:
+            reports = _stats_job(located, stage, out_dir, cfg, figures, command, log, formats)
+        return _finish(reports, out_dir, upload_to, log, formats, start)
+    except BaseException as e:
+        _remove_created(created, out_dir)
+        if isinstance(e, OSError) and is_disk_full(e):
+            raise DiskFull(f"no space left writing the stats to {out_dir}: nothing of this run was kept; free some "
+                           f"space or choose another --out") from None
+        raise
     finally:
         if scratch is not None:
             scratch.cleanup()
 
 
-def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: str, log,
-               formats: Sequence[str] = REPORT_FORMATS) -> Path:
-    from asp_dist.analysis import plot_all, run_stats, write_tables
-    from asp_dist.analysis.document import render_markdown, write_atomic
-    from asp_dist.analysis.html_report import write_html
-    from asp_dist.analysis.latex_tables import write_latex_tables
-    from asp_dist.analysis.report import build_report
-    from asp_dist.analysis.rliable_plots import plot_rliable
-    from asp_dist.analysis.tuning import plot_tuning, read_configurations
+def _finish(reports: list[Path], out_dir: Path, upload_to, log, formats: Sequence[str], start: float) -> Path:
+    """The reports in out_dir (uploaded beside an S3 sweep); report.md, else report.html, else stats/."""
     from asp_dist.results.s3 import upload_tree
 
-    start = time.perf_counter()
-    result = run_stats(located, cfg)
-    log(f"read and analysed {len(result.rows)} rows from {len(result.inputs.files)} files "
-        f"({', '.join(sorted(result.layouts))}) in {time.perf_counter() - start:.1f} s")
-    written = write_tables(result, out_dir)
-    log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
-    latex = write_latex_tables(result, out_dir) if "latex" in formats else {}
-    if latex:
-        log(f"wrote {len(latex)} LaTeX tables ({', '.join(p.name for p in latex.values())}) to {out_dir / 'stats'}")
-    figs, notes = plot_all(result, out_dir / "figures") if figures else ([], [])
-    if figures:
-        figs += plot_rliable(result, out_dir / "figures")
-        figs += plot_tuning(read_configurations(result), out_dir / "figures")  # a tune run's search, per method
-        log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
-    doc = build_report(result, out_dir, figs, notes, sources=[str(p) for p in located], command=command,
-                       latex_tables=list(latex))
-    reports = []
-    if "md" in formats:
-        reports.append(write_atomic(out_dir / "report.md", render_markdown(doc)))
-    if "html" in formats:
-        reports.append(write_html(doc))
     report = reports[0] if reports else out_dir / "stats"
     if upload_to is not None:
         written = upload_tree(out_dir, upload_to)
@@ -176,22 +178,52 @@ def _stats_job(located, out_dir: Path, upload_to, cfg, figures: bool, command: s
             f"to {upload_to}")
         report = upload_to / report.relative_to(out_dir).as_posix()
         reports = [upload_to / p.relative_to(out_dir).as_posix() for p in reports]
-    for note in result.notes + notes:
-        log(f"note: {note}")
     log(f"report: {', '.join(str(p) for p in reports) or 'none (--formats ' + ','.join(formats) + ')'} "
         f"({time.perf_counter() - start:.1f} s in all)")
     return report
 
 
+def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command: str, log,
+               formats: Sequence[str] = REPORT_FORMATS) -> list[Path]:
+    """Every file of the job written under `stage` (the messages name out_dir, where they will be); the
+    reports written, as paths in out_dir."""
+    from asp_dist.analysis import plot_all, run_stats, write_tables
+    from asp_dist.analysis.document import render_markdown, write_atomic
+    from asp_dist.analysis.html_report import write_html
+    from asp_dist.analysis.latex_tables import write_latex_tables
+    from asp_dist.analysis.report import build_report
+    from asp_dist.analysis.rliable_plots import plot_rliable
+    from asp_dist.analysis.tuning import plot_tuning, read_configurations
+
+    start = time.perf_counter()
+    result = run_stats(located, cfg)
+    log(f"read and analysed {len(result.rows)} rows from {len(result.inputs.files)} files "
+        f"({', '.join(sorted(result.layouts))}) in {time.perf_counter() - start:.1f} s")
+    written = write_tables(result, stage)
+    log(f"wrote {len(written)} tables to {out_dir / 'stats'}")
+    latex = write_latex_tables(result, stage) if "latex" in formats else {}
+    if latex:
+        log(f"wrote {len(latex)} LaTeX tables ({', '.join(p.name for p in latex.values())}) to {out_dir / 'stats'}")
+    figs, notes = plot_all(result, stage / "figures") if figures else ([], [])
+    if figures:
+        figs += plot_rliable(result, stage / "figures")
+        figs += plot_tuning(read_configurations(result), stage / "figures")  # a tune run's search, per method
+        log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
+    doc = build_report(result, stage, figs, notes, sources=[str(p) for p in located], command=command,
+                       latex_tables=list(latex))
+    reports = []
+    if "md" in formats:
+        reports.append(write_atomic(stage / "report.md", render_markdown(doc)))
+    if "html" in formats:
+        reports.append(write_html(doc))
+    for note in result.notes + notes:
+        log(f"note: {note}")
+    return [out_dir / p.relative_to(stage) for p in reports]
+
+
 def cmd_stats(args: argparse.Namespace) -> int:
     from asp_dist.analysis import StatsConfig
 
-    if args.bootstrap < 100:
-        raise SpecError("--bootstrap must be at least 100 resamples")
-    if not 0 < args.alpha < 1:
-        raise SpecError("--alpha must be between 0 and 1")
-    if args.seed < 0:
-        raise SpecError(f"--seed must be >= 0, got {args.seed}")
     if not args.metric.strip():
         raise SpecError("--metric is empty; name a metric column such as eval_mixed")
     formats = parse_formats(args.formats)
@@ -223,18 +255,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stats", help="statistics, figures and report (md, html, LaTeX tables) of one or more sweeps",
                        description="Turn a sweep's rows into tables (stats/), figures (figures/), report.md and "
                                    "report.html, and LaTeX tables (stats/*.tex).")
-    p.add_argument("sweeps", nargs="+", metavar="SWEEP",
+    p.add_argument("sweeps", nargs="+", metavar="SWEEP", type=non_empty_argument,
                    help="sweep name (under --results) or directory, any directory or .parquet files; several merge")
     add_results(p)
-    p.add_argument("--out", help="directory for stats/, figures/ and the report (default: the single sweep directory)")
+    p.add_argument("--out", type=non_empty,
+                   help="directory for stats/, figures/ and the report (default: the single sweep directory)")
     p.add_argument("--metric", default="eval_mixed", help="metric column to analyse (default: eval_mixed)")
     p.add_argument("--paired-range", action="append", default=[], metavar="DOMAIN=LO-HI",
                    help="paired counts of the Friedman test (defaults: the paper's per domain, others all)")
     p.add_argument("--threshold", action="append", default=[], metavar="DOMAIN=VALUE",
                    help="data-efficiency threshold of the metric (defaults: the paper's, else 90%% of base)")
-    p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
-    p.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples (default 2000)")
-    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0)")
+    p.add_argument("--alpha", type=float_between(0, 1), default=0.05, help="significance level (default 0.05)")
+    p.add_argument("--bootstrap", type=RESAMPLES, default=2000, help="bootstrap resamples (default 2000)")
+    p.add_argument("--seed", type=SEED, default=0, help="bootstrap seed (default 0)")
     p.add_argument("--formats", default=",".join(REPORT_FORMATS), metavar="LIST",
                    help="report outputs, comma-separated: md (report.md), html (report.html, self-contained), "
                         "latex (stats/*.tex booktabs tables); default: md,html,latex")

@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from asp_dist.commands.common import add_results, check_data
+from asp_dist.commands.common import MAX_FAILURES, WORKERS, add_results, check_data, int_between, non_empty, seconds
 from asp_dist.errors import SpecError
 from asp_dist.results import store
 from asp_dist.results.location import as_path, is_remote
@@ -81,7 +81,7 @@ def tracking_settings(args: argparse.Namespace, name: str, defaults: dict | None
         loggers = tuple(defaults.get("loggers", ()))
     settings = tracking.TrackingSettings(
         loggers, args.logger_dir or defaults.get("dir"), args.mlflow_uri or defaults.get("mlflow_uri"),
-        args.wandb_project or defaults.get("wandb_project"))
+        args.wandb_project or defaults.get("wandb_project"), timeout_s=args.connect_timeout)
     if not loggers:
         return settings
     # File-based trackers write next to the sweep; a sweep on S3 has no local directory: ./asp-dist-trackers/NAME.
@@ -199,35 +199,37 @@ def nothing_to_resume(results: str, plan) -> str | None:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", type=int, default=2, help="concurrent cells, 1 CPU each (default 2)")
+    p.add_argument("--workers", type=WORKERS, default=2, help="concurrent cells, 1 CPU each (default 2)")
     p.add_argument("--address", default=None,
                    help="join an existing Ray cluster (e.g. 127.0.0.1:6379) instead of starting an embedded one")
     add_results(p)
-    p.add_argument("--max-failures", type=int, default=2, help="retries of a cell whose worker dies (default 2)")
-    p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="SECONDS",
+    p.add_argument("--max-failures", type=MAX_FAILURES, default=2,
+                   help="retries of a cell whose worker dies (default 2)")
+    p.add_argument("--checkpoint-every", type=seconds(), default=30.0, metavar="SECONDS",
                    help="checkpoint interval of a running cell: at most this much work is lost on a crash")
-    p.add_argument("--ray-temp-dir", default=None, help="temp dir of the embedded Ray (default /tmp/asp-ray-$USER)")
-    p.add_argument("--connect-timeout", type=float, default=20.0, metavar="SECONDS",
-                   help="give up (exit 2, nothing written) if the cluster of --address or the S3 endpoint of "
-                        "--results does not answer within this time; also bounds the wait for a silent S3 lease "
-                        "(default 20)")
+    p.add_argument("--ray-temp-dir", type=non_empty, default=None,
+                   help="temp dir of the embedded Ray (default /tmp/asp-ray-$USER)")
+    p.add_argument("--connect-timeout", type=seconds(), default=20.0, metavar="SECONDS",
+                   help="give up (exit 2, nothing written) if the cluster of --address, the S3 endpoint of "
+                        "--results or a tracker's server (--logger mlflow, wandb online) does not answer within this "
+                        "time; also bounds the wait for a silent S3 lease and each tracker call (default 20)")
     p.add_argument("--dashboard", action="store_true",
                    help="start the embedded Ray's dashboard, on 127.0.0.1 only (default: none)")
     p.add_argument("--pack", default=None, metavar="cell|trial|method",
                    help="train cells that share tensor shapes as one batched model per Tune trial: 'trial' packs "
                         "the cells of one trial, 'method' those of one method across trials; 'cell' (the default "
                         "of a new sweep) runs one cell per trial. Fixed when a sweep starts; resume keeps it")
-    p.add_argument("--pack-size", type=int, default=None, metavar="N",
+    p.add_argument("--pack-size", type=int_between(1), default=None, metavar="N",
                    help="at most N cells per pack (default 21); larger groups split deterministically")
-    p.add_argument("--logger", action="append", default=None, metavar="tensorboard|mlflow|wandb|json",
+    p.add_argument("--logger", action="append", type=non_empty, default=None, metavar="tensorboard|mlflow|wandb|json",
                    help="watch every cell live in this tracker, one tracker run per cell (repeatable; default: the "
                         "space file's [logging], on resume the last run's; 'none': no tracker). See docs/tracking.md")
-    p.add_argument("--logger-dir", default=None, metavar="DIR",
+    p.add_argument("--logger-dir", type=non_empty, default=None, metavar="DIR",
                    help="where tensorboard, json, wandb and the default MLflow store write "
                         "(default RESULTS/NAME/trackers)")
-    p.add_argument("--mlflow-uri", default=None, metavar="URI",
+    p.add_argument("--mlflow-uri", type=non_empty, default=None, metavar="URI",
                    help="MLflow tracking URI (default MLFLOW_TRACKING_URI, else sqlite:///DIR/mlflow.db)")
-    p.add_argument("--wandb-project", default=None, metavar="NAME",
+    p.add_argument("--wandb-project", type=non_empty, default=None, metavar="NAME",
                    help="W&B project (default WANDB_PROJECT, else asp-dist); offline unless W&B credentials or "
                         "WANDB_MODE say otherwise")
 

@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 
+from asp_dist.commands.common import int_between
 from asp_dist.errors import SpecError
 
 
@@ -14,8 +15,6 @@ def cmd_theory(args: argparse.Namespace) -> int:
 
     if args.probs is not None and args.skew is not None:
         raise SpecError("give either --probs or --skew, not both")
-    if args.states < 1 or args.actions < 1:
-        raise SpecError(f"--states and --actions must be >= 1, got S={args.states}, A={args.actions}")
     probs = None
     if args.probs is not None:
         probs = parse_probs(args.probs, args.actions)
@@ -62,8 +61,8 @@ def parse_probs(text: str, actions: int) -> list[float]:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("theory", help="policy-space pruning of the adversary (the paper's analysis)")
-    p.add_argument("--states", "-S", type=int, required=True)
-    p.add_argument("--actions", "-A", type=int, required=True)
+    p.add_argument("--states", "-S", type=int_between(1), required=True)
+    p.add_argument("--actions", "-A", type=int_between(1), required=True)
     p.add_argument("--probs", help="comma-separated action distribution (default uniform)")
     p.add_argument("--skew", type=float, help="p_k ∝ exp(-skew·k), as in the signaling game")
     p.add_argument("--json", action="store_true")

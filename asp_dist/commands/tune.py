@@ -6,7 +6,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from asp_dist.commands.common import add_results, check_data
+from asp_dist.commands.common import (
+    MAX_FAILURES,
+    SEED,
+    WORKERS,
+    add_results,
+    check_data,
+    int_between,
+    non_empty,
+    seconds,
+)
 from asp_dist.errors import SpecError
 
 
@@ -29,11 +38,6 @@ def cmd_tune(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in (("budget", args.budget), ("search", args.search), ("seed", args.seed),
                                    ("scheduler", args.scheduler)) if v is not None}
     if overrides:
-        if overrides.get("budget", 1) < 1:
-            raise SpecError(f"--budget is the number of configurations per method, an integer >= 1; "
-                            f"got {overrides['budget']}")
-        if overrides.get("seed", 0) < 0:
-            raise SpecError(f"--seed must be >= 0, got {overrides['seed']}")
         plan.settings = dataclasses.replace(plan.settings, **overrides)
         if "scheduler" in overrides:  # the space's grace_points against its cells, as the plan checks its own
             check_scheduler(plan.settings, [c for s in plan.searches.values() for c in s.cells], "--scheduler")
@@ -59,16 +63,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                                    "configurations for every method. Resumable: run the same command again after a stop. Writes "
                                    "the cells' rows, configurations.parquet and tuned.toml under DIR/NAME.")
     p.add_argument("space", help="a tune space: tune_spaces/<name>.toml or a path")
-    p.add_argument("--name", help="the tune run's name (default: the space's)")
+    p.add_argument("--name", type=non_empty, help="the tune run's name (default: the space's)")
     add_results(p)
-    p.add_argument("--workers", type=int, default=2, help="configurations trained at once, 1 CPU each (default 2)")
-    p.add_argument("--budget", type=int, help="configurations per method (default: the space's [tune] budget)")
+    p.add_argument("--workers", type=WORKERS, default=2, help="configurations trained at once, 1 CPU each (default 2)")
+    # every configuration trains all the space's calibration cells: 10^5 per method is already far past a budget
+    p.add_argument("--budget", type=int_between(1, 100_000), help="configurations per method (default: the space's "
+                                                                   "[tune] budget)")
     p.add_argument("--search", help="tpe | random (default: the space's)")
-    p.add_argument("--seed", type=int, help="the searcher's seed (default: the space's)")
+    p.add_argument("--seed", type=SEED, help="the searcher's seed (default: the space's)")
     p.add_argument("--scheduler", help="none | asha: stop hopeless configurations early on their learning curves, "
                                        "with the space's ASHA settings (default: the space's)")
-    p.add_argument("--ray-temp-dir", metavar="DIR", help="the embedded Ray's temp dir")
-    p.add_argument("--max-failures", type=int, default=2, help="retries of a crashed configuration (default 2)")
-    p.add_argument("--checkpoint-every", type=float, default=30.0, metavar="S",
+    p.add_argument("--ray-temp-dir", type=non_empty, metavar="DIR", help="the embedded Ray's temp dir")
+    p.add_argument("--max-failures", type=MAX_FAILURES, default=2,
+                   help="retries of a crashed configuration (default 2)")
+    p.add_argument("--checkpoint-every", type=seconds(), default=30.0, metavar="S",
                    help="seconds between a configuration's checkpoints (default 30)")
     p.set_defaults(func=cmd_tune)

@@ -97,8 +97,14 @@ def _stored_row(sweep_dir: AnyPath, cell_id: str, domain: str, method: str) -> d
     path = store.cell_path(sweep_dir, domain, method, cell_id)
     if not store.is_done(sweep_dir, domain, method, cell_id):
         raise SweepError(f"cell {cell_id} has no row in {sweep_dir} (not finished yet?): nothing to replay")
-    with path.open_input() if hasattr(path, "open_input") else open(path, "rb") as fh:
-        table = pq.read_table(fh)
+    # A local file by its path, not a Python file object: an Arrow pool thread may drop its last reference to such
+    # an object just after the read, and if the interpreter is exiting by then (a quick refusal below), that
+    # thread is ended inside a C++ destructor: "terminate called without an active exception", exit 134.
+    if hasattr(path, "open_input"):
+        with path.open_input() as fh:
+            table = pq.read_table(fh)
+    else:
+        table = pq.read_table(str(path))
     row = table.to_pylist()[0]
     return {k: (str(v) if k in ("domain", "method") and v is not None else v) for k, v in row.items()}
 

@@ -234,37 +234,35 @@ def _restored_state(sweep_dir: AnyPath, name: str) -> dict | None:
     if checkpoint is not None:
         try:
             with checkpoint.as_directory() as d:
-                state = _read_state(Path(d) / "state.pt", f"checkpoint {checkpoint.path}/state.pt")
+                state, problem = _read_state(Path(d) / "state.pt", f"checkpoint {checkpoint.path}/state.pt")
         except FileNotFoundError:  # nothing at all under the checkpoint's path
-            state = None
-        if state is not None:
-            return state
-        print(f"asp-dist: warning: the checkpoint {checkpoint.path} Tune restores this trial from holds no "
-              f"state it can use; the trial starts over", file=sys.stderr, flush=True)
-        return None
+            state, problem = None, None
+        if state is None:
+            problem = problem or (f"the checkpoint {checkpoint.path} Tune restores this trial from holds no state "
+                                  f"(deleted after a newer one while Tune's experiment state was on its way to "
+                                  f"storage)")
+            print(f"asp-dist: warning: {problem}; the trial starts over", file=sys.stderr, flush=True)
+        return state
     for path in _earlier_checkpoints(sweep_dir, name):
-        state = _read_state(path, f"checkpoint {path}")
+        state, problem = _read_state(path, f"checkpoint {path}")
         if state is not None:
             return state
+        if problem is not None:
+            print(f"asp-dist: warning: {problem}; not restored from it", file=sys.stderr, flush=True)
     return None
 
 
-def _read_state(path: AnyPath, what: str) -> dict | None:
-    """A checkpoint's state, or None (with one warning line when the file is there but cannot be used)."""
+def _read_state(path: AnyPath, what: str) -> tuple[dict | None, str | None]:
+    """(a checkpoint's state, None), or (None, what is wrong with the file), or (None, None) when there is none."""
     from asp_dist.training.artefacts import DamagedArtefact, load_file
 
     try:
         state = load_file(path, what)
     except FileNotFoundError:
-        return None
+        return None, None
     except DamagedArtefact as err:
-        print(f"asp-dist: warning: {err}; not restored from it", file=sys.stderr, flush=True)
-        return None
-    if not isinstance(state, dict):
-        print(f"asp-dist: warning: {what} holds no checkpoint's state; not restored from it", file=sys.stderr,
-              flush=True)
-        return None
-    return state
+        return None, str(err)
+    return (state, None) if isinstance(state, dict) else (None, f"{what} holds no checkpoint's state")
 
 
 def _earlier_checkpoints(sweep_dir: AnyPath, name: str) -> list[AnyPath]:

@@ -76,10 +76,11 @@ def test_base_reaches_the_bar_at_default_knobs():
 
 
 def test_base_round_trip():
-    """The sweep's base cache stores bases as bytes: a cell on a loaded base gives the same row."""
+    """The sweep's base cache stores a base as its weights, loaded into the domain's base_agents(spec): a cell on a
+    loaded base gives the same row."""
     spec = smoke(method="asp", paired=2).resolved()
     base = train_accepted_base(spec)
-    loaded = base_from_bytes(base_to_bytes(base))
+    loaded = base_from_bytes(base_to_bytes(base), spec)
     assert_same_params(base.agents, loaded.agents, "base round trip")
     assert comparable(run_cell(spec, base=loaded)) == comparable(run_cell(spec, base=base))
 
