@@ -15,6 +15,7 @@ import pandas as pd
 import pytest
 from budgets import TINY
 from harness import cli, kill_group, parquet_files, read_log, space, start_cli, wait_for, wait_until_gone
+from planted import raw_pickle
 
 from asp_dist.errors import SweepError
 from asp_dist.knobs import Knob, Range, choice, log_uniform
@@ -365,7 +366,9 @@ def test_the_tuning_section_counts_the_configurations_asha_stopped_and_never_nam
 def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_path):
     """SIGKILL the tune run once some cells have rows, run it again: every method ends with exactly its budget
     of configurations, each configuration's cells have one row each, rows written before the kill are never
-    rewritten, and the report names each method's best configuration as space settings."""
+    rewritten, and the report names each method's best configuration as space settings. Tune's own state is
+    never unpickled on the way: pickles planted where Tune keeps it (tuner.pkl, a searcher's state), which
+    Tuner.restore would load, run nothing."""
     results, ray_temp = tmp_path / "runs", f"/tmp/asp-tk-{os.getpid()}"  # Ray's socket paths are short
     args = ("tune", "tune-smoke", "--results", str(results), "--ray-temp-dir", ray_temp)
     sweep_dir = results / "tune-smoke"
@@ -376,10 +379,16 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
         assert proc.wait(30) == -signal.SIGKILL, read_log(tmp_path / "log1")
         wait_until_gone(proc.pid, ray_temp, 60)
         before = {f: f.stat().st_mtime_ns for f in parquet_files(sweep_dir)}
+        experiments = [d for d in (sweep_dir / "tune").glob("tune-*") if d.is_dir()]
+        assert experiments, "no Tune experiment to plant into"
+        for experiment in experiments:
+            for name in ("tuner.pkl", "searcher-state-2099-01-01_00-00-00.pkl"):
+                (experiment / name).write_bytes(raw_pickle(tmp_path / "ran"))
         again = cli(*args, timeout=400)
     finally:
         shutil.rmtree(ray_temp, ignore_errors=True)
     assert again.returncode == 0, again.stderr[-3000:]
+    assert not (tmp_path / "ran").exists(), "resuming the tune run unpickled a file planted in Tune's state"
     assert {f: f.stat().st_mtime_ns for f in before} == before, "a row written before the kill was rewritten"
     table = pd.read_parquet(sweep_dir / "configurations.parquet")
     assert table.groupby("method").size().to_dict() == {"asp": 3, "osp": 3, "pc": 3}

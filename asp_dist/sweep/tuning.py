@@ -22,9 +22,14 @@ not pack, its cells train one after another and only the last one's points compl
 it keep their rows); it counts against its method's budget once, has no objective, is never chosen, and its
 trial ends TERMINATED: never run again.
 
-Resumable like a sweep: the lock is the sweep's; a killed run's experiment is restored (Tuner.restore: the
-searcher's state, the finished configurations, the running ones from their checkpoints), finished cells are
-never trained again (their rows are there) and finished configurations never evaluated again. At the end:
+Resumable like a sweep: the lock is the sweep's. Tune's own state is never restored (Tuner.restore unpickles it,
+and a results directory may be shared or copied: docs/decisions/0057-stored-artefacts-hold-no-code.md). Instead the
+driver records each finished configuration as JSON (tune/records/<experiment>/<n>.json: its values and how it
+ended); a method whose latest experiment has its whole budget recorded is done, and any other starts its search
+again in a new experiment (tune-<method>-<k>). The seeded search suggests the same configurations for the same
+results, and a configuration whose cells have rows trains nothing (the rows are the truth its objective is read
+from), so the search runs through what was done in seconds and goes on where it stopped; a configuration that was
+training when the run stopped starts its cells over, and one ASHA had stopped is trained and judged again. At the end:
 `configurations.parquet` (every configuration tried: method, index, knob values, objective, its cells) and
 `tuned.toml` (each method's best configuration, as a space's [methods.<name>] settings).
 """
@@ -35,6 +40,7 @@ import json
 import logging
 import math
 import os
+import re
 import statistics
 import sys
 from collections.abc import Callable
@@ -54,7 +60,7 @@ from asp_dist.sweep import ledger, preflight, signals
 from asp_dist.sweep.ray_host import ray_session
 from asp_dist.sweep.tune import _tune_result_logs
 from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, curve_points, winning_configuration
-from asp_dist.sweep.tune_storage import tune_storage
+from asp_dist.sweep.tune_storage import TUNE_DIR, tune_storage
 
 log = logging.getLogger(__name__)
 
@@ -197,14 +203,30 @@ class TuneProgress(tune.Callback):
     """One line on stderr per finished configuration: the method's count against its budget, the objective,
     the best so far. Tune pickles its callbacks with the experiment: only the numbers are pickled."""
 
-    def __init__(self, name: str, method: str, budget: int, higher_is_better: bool):
+    def __init__(self, name: str, method: str, budget: int, higher_is_better: bool, records: str = "",
+                 knobs: tuple[str, ...] = ()):
         self.name, self.method, self.budget, self.higher = name, method, budget, higher_is_better
+        self.records, self.knobs = records, tuple(knobs)  # where each configuration's record goes (JSON)
         self.done, self.best = 0, None
 
     def __reduce__(self):
-        return (TuneProgress, (self.name, self.method, self.budget, self.higher))
+        return (TuneProgress, (self.name, self.method, self.budget, self.higher, self.records, self.knobs))
+
+    def _record(self, trial, status: str) -> None:
+        """The configuration's record: what configurations_table reads and what says the method is done."""
+        if not self.records:
+            return
+        result = trial.last_result or {}
+        kept = {k: result[k] for k in (OBJECTIVE, CURVE_POINT, "cells_done") if k in result}
+        write_replace(as_path(self.records) / f"{_trial_number(trial)}.json",
+                      json.dumps({"number": _trial_number(trial), "trial_id": trial.trial_id, "status": status,
+                                  "values": {k: trial.config[k] for k in self.knobs}, "result": kept}))
+
+    def on_trial_error(self, iteration, trials, trial, **info):
+        self._record(trial, "ERROR")
 
     def on_trial_complete(self, iteration, trials, trial, **info):
+        self._record(trial, "TERMINATED")
         result = trial.last_result or {}
         objective = result.get(OBJECTIVE, float("nan"))
         self.done = sum(t.status == "TERMINATED" or t is trial for t in trials)  # this one's status is set after
@@ -277,27 +299,66 @@ def _scheduler(plan: TunePlan, search: MethodSearch):
                          reduction_factor=settings.reduction_factor, brackets=settings.brackets, stop_last_trials=False)
 
 
-def _experiment_name(method: str) -> str:
-    return f"tune-{method}"
+RECORDS = "records"  # under the run's tune/: one folder of configuration records per Tune experiment
+
+
+def _experiment_name(method: str, k: int = 1) -> str:
+    """A method's k-th Tune experiment (a run stopped midway is searched again in the next)."""
+    return f"tune-{method}" if k == 1 else f"tune-{method}-{k}"
+
+
+def _experiment_numbers(folder: AnyPath, method: str) -> list[int]:
+    """The k of every experiment of `method` named in `folder` (Tune's tune/ or its records/)."""
+    pattern = re.compile(rf"tune-{re.escape(method)}(?:-(\d+))?")
+    try:
+        names = [p.name for p in folder.iterdir()]
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    return sorted(int(m.group(1) or 1) for m in map(pattern.fullmatch, names) if m)
+
+
+def _records(sweep_dir: AnyPath, experiment: str) -> list[dict[str, Any]]:
+    """The configuration records of one experiment, in the order Tune created the configurations. A record that
+    is not what TuneProgress writes is one line (a results tree edited by hand), never a traceback."""
+    folder = sweep_dir / TUNE_DIR / RECORDS / experiment
+    try:
+        paths = [p for p in folder.iterdir() if p.name.endswith(".json") and p.name[:-5].isdigit()]
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    records = []
+    for path in paths:
+        try:
+            record = json.loads(path.read_text())
+            records.append((int(record["number"]), record["trial_id"], record["status"], dict(record["values"]),
+                            dict(record["result"])))
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+            raise SweepError(f"{path} is not a configuration record asp-dist tune writes; remove the tune run's "
+                             f"tune/{RECORDS}/{experiment}/ to search that method again") from None
+    return [{"number": n, "trial_id": t, "status": st, "values": v, "result": r} for n, t, st, v, r in sorted(records)]
+
+
+def method_experiment(sweep_dir: AnyPath, method: str, budget: int) -> tuple[str, bool]:
+    """The experiment of `method` to read or run, and whether its whole budget is recorded (done). Else a new
+    one: its number above every experiment of the method that Tune or the records name."""
+    recorded = _experiment_numbers(sweep_dir / TUNE_DIR / RECORDS, method)
+    if recorded and len(_records(sweep_dir, _experiment_name(method, recorded[-1]))) >= budget:
+        return _experiment_name(method, recorded[-1]), True
+    known = recorded + _experiment_numbers(sweep_dir / TUNE_DIR, method)
+    return _experiment_name(method, max(known, default=0) + 1), False
 
 
 def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath, workers: int,
-           checkpoint_every_s: float, max_failures: int) -> tune.Tuner:
+           checkpoint_every_s: float, max_failures: int, experiment: str) -> tune.Tuner:
+    """A new Tune experiment of one method's whole search (never a restored one: see the module docstring)."""
     storage_path, storage_fs = tune_storage(sweep_dir)
-    experiment = _experiment_name(search.method)
     info = {"method": search.method, "knobs": sorted(search.ranges), "cells": [c.to_dict() for c in search.cells],
             "sweep_dir": str(sweep_dir), "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s,
             "column": plan.objective_column, "higher_is_better": plan.higher_is_better}
     if plan.settings.scheduler == "asha":
         info["curve_key"] = f"probe_{plan.settings.metric}"
     trainable = tune.with_resources(tune.with_parameters(train_configuration, plan=info), {"cpu": 1})
-    path = f"{storage_path}/{experiment}"
-    if tune.Tuner.can_restore(path, storage_filesystem=storage_fs):
-        # The searcher and the scheduler come back as stored; finished and stopped configurations (TERMINATED)
-        # are not run again. ASHA's rungs are not part of Tune's experiment state: they restart empty.
-        return tune.Tuner.restore(path, trainable=trainable, resume_unfinished=True, resume_errored=True,
-                                  storage_filesystem=storage_fs)
     searcher, mode = _searcher(plan, index, workers, search)
+    records = str(sweep_dir / TUNE_DIR / RECORDS / experiment)
     return tune.Tuner(
         trainable, param_space=search_space(search.ranges),
         tune_config=tune.TuneConfig(search_alg=searcher, metric=OBJECTIVE, mode=mode, num_samples=plan.settings.budget,
@@ -306,9 +367,9 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
         run_config=tune.RunConfig(name=experiment, storage_path=storage_path, storage_filesystem=storage_fs,
                                   verbose=0, failure_config=tune.FailureConfig(max_failures=max_failures),
                                   checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-                                  # result.json: what configurations_table reads
                                   callbacks=[TuneProgress(plan.name, search.method, plan.settings.budget,
-                                                          plan.higher_is_better), *_tune_result_logs()]))
+                                                          plan.higher_is_better, records, tuple(sorted(search.ranges))),
+                                             *_tune_result_logs()]))
 
 
 def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
@@ -334,29 +395,29 @@ def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
 
 
 def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
-    """Every configuration tried, read back from each method's Tune experiment and scored from the rows."""
+    """Every configuration of each method's finished search, from its records, scored from the rows."""
     import pandas as pd
-    from ray.tune import ExperimentAnalysis
 
-    storage_path, storage_fs = tune_storage(sweep_dir)
     records = []
     for method, search in plan.searches.items():
-        analysis = ExperimentAnalysis(f"{storage_path}/{_experiment_name(method)}", storage_filesystem=storage_fs)
-        trials = sorted(analysis.trials, key=_trial_number)
-        for index, trial in enumerate(trials):
-            values = {k: trial.config[k] for k in search.ranges}
+        experiment, done = method_experiment(sweep_dir, method, plan.settings.budget)
+        if not done:
+            raise SweepError(f"tune run {plan.name}: the {method} search is not finished ({experiment}); run the same "
+                             f"asp-dist tune command again to finish it")
+        for index, trial in enumerate(_records(sweep_dir, experiment)):
+            values = {k: trial["values"][k] for k in search.ranges}
             units = configuration_units([c.to_dict() for c in search.cells], values, method, str(sweep_dir),
                                         plan.name, 30.0)
             cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
             objective, done = objective_of(sweep_dir, units, plan.objective_column)
-            record = {"method": method, "configuration": index, "trial_id": trial.trial_id,
+            record = {"method": method, "configuration": index, "trial_id": trial["trial_id"],
                       **{f"knob_{k}": v for k, v in values.items()}, OBJECTIVE: objective,
                       "cells": len(cell_ids), "cells_done": done, "cell_ids": ",".join(cell_ids)}
             if plan.settings.scheduler == "asha":
                 # A stopped configuration has no objective (no rows of its own; another configuration of the same
                 # values may have written them): its intermediate one and where ASHA stopped it instead.
-                result = trial.last_result or {}
-                stopped = trial.status == "TERMINATED" and stopped_early(result)
+                result = trial["result"]
+                stopped = trial["status"] == "TERMINATED" and stopped_early(result)
                 record.update({OBJECTIVE: float("nan") if stopped else objective, "stopped_early": stopped,
                                "stopped_at_point": int(result[CURVE_POINT]) if stopped else None,
                                "objective_at_stop": float(result[OBJECTIVE]) if stopped else None})
@@ -437,7 +498,10 @@ def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: st
                              f"{', ' + _asha(plan.settings) if _asha(plan.settings) else ''})\n")
             with ray_session(workers, None, ray_temp_dir, stream=stream):
                 for index, (method, search) in enumerate(plan.searches.items()):
-                    _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures))
+                    experiment, done = method_experiment(sweep_dir, method, plan.settings.budget)
+                    if not done:
+                        _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures,
+                                    experiment))
                     stream.write(f"tune {plan.name}: {method} done\n")
             table = configurations_table(plan, sweep_dir)
             write_replace(sweep_dir / CONFIGURATIONS, parquet_bytes(pa.Table.from_pandas(table, preserve_index=False)))
