@@ -47,6 +47,7 @@ from harness import (
     wait_for,
     wait_until_gone,
 )
+from planted import raw_pickle
 
 from asp_dist.cli import main
 from asp_dist.results import store
@@ -430,8 +431,13 @@ def test_a_damaged_sweep_extended_then_killed_resumes_to_every_cell_once(smoke, 
     status = cli("status", "smoke", "--results", str(results))
     assert "not running" in status.stdout and f"total{'':<15}{done_at_kill:>7}" in status.stdout
 
+    # Pickles planted where Tune keeps the killed experiment's state (what Tuner.restore would load): never run
+    for experiment in [d for d in (sweep_dir / "tune").glob("run-*") if d.is_dir()]:
+        for name in ("tuner.pkl", "basic-variant-state-2099-01-01_00-00-00.json"):
+            (experiment / name).write_bytes(raw_pickle(tmp_path / "ran"))
     resumed = cli("resume", "smoke", "--results", str(results), "--checkpoint-every", "0.3")  # the last run's loggers
     assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert not (tmp_path / "ran").exists(), "resuming the sweep unpickled a file planted in Tune's state"
     assert f"({done_at_kill} already done)" in resumed.stderr and "22/22 cells done, 0 failed" in resumed.stdout
     for path in (cut, empty, wrong, dangling):
         assert path.is_file() and not path.is_symlink()
