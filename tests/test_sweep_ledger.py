@@ -251,3 +251,24 @@ def test_status_and_refused_inputs_never_import_ray(tmp_path, smoke_specs):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.splitlines()[-1].split() == ["total", "0", "0", "18"]
 
+
+
+@pytest.mark.parametrize("command", ["sweep", "resume"])
+def test_a_run_reads_its_manifest_once_before_its_lock_and_once_under_it(tmp_path, smoke_specs, monkeypatch, command,
+                                                                         capsys):
+    """The plan carries the manifest its checks read (asp_dist.sweep.plan.Plan.manifest); the run reads it again
+    only under the sweep's lock, where another run may have changed it. A finished sweep run again trains nothing
+    and starts no Ray, so the count is the driver's whole."""
+    from asp_dist.cli import main
+
+    sweep_dir = tmp_path / "smoke"
+    store.write_manifest(sweep_dir, ledger.new_manifest("smoke", "smoke", smoke_specs))
+    for spec in smoke_specs:
+        store.write_row(sweep_dir, finished_row(spec), sweep_id="smoke")
+    reads = []
+    read = store.read_manifest
+    monkeypatch.setattr(store, "read_manifest", lambda d: reads.append(d) or read(d))
+    argv = ["sweep", "smoke"] if command == "sweep" else ["resume", "smoke"]
+    assert main([*argv, "--results", str(tmp_path)]) == 0, capsys.readouterr().err
+    # resume of a finished sweep stops after its checks (nothing to resume): one read
+    assert len(reads) == (2 if command == "sweep" else 1), reads

@@ -4,6 +4,7 @@ checks made before anything is written, SIGTERM as Ctrl-C, and what a finished r
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -147,7 +148,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         check_run_flags(args)
         plan = Plan.from_space(args.space, args.name)  # read and resolved once: the run takes this plan
         name.append(plan.name)
-        check_can_start(args.results, plan.name, plan.specs, plan.space, args.pack, args.pack_size, args.extend)
+        manifest = check_can_start(args.results, plan.name, plan.specs, plan.space, args.pack, args.pack_size,
+                                   args.extend)
+        plan = dataclasses.replace(plan, manifest=manifest)  # what the run checks before its lock, not read again
         check_data(plan.specs)
         tracking = tracking_settings(args, plan.name, plan.logging)
         if args.address is not None:
@@ -166,8 +169,7 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
         check_run_flags(args)
         # an unknown or broken sweep too, and a packing other than its own, before the Ray import
-        space, specs = check_can_resume(args.results, args.name, args.pack, args.pack_size)  # the manifest, once
-        plan = Plan(args.name, space, specs)
+        plan = Plan.from_manifest(args.name, check_can_resume(args.results, args.name, args.pack, args.pack_size))
         finished = nothing_to_resume(args.results, plan)
         if finished:
             print(finished, file=sys.stderr)

@@ -1,11 +1,13 @@
-"""What a sweep run is given: a Plan (which cells, under which name) read and resolved once, and the
-RunOptions of how to run them. The CLI builds both, checks them before Ray is imported, and hands them to
-sweep.tune.run_plan; nothing downstream expands the space or reads the manifest again."""
+"""What a sweep run is given: a Plan (which cells, under which name, and the sweep's manifest as the checks read
+it) read and resolved once, and the RunOptions of how to run them. The CLI builds both, checks them before Ray is
+imported, and hands them to sweep.tune.run_plan; nothing downstream expands the space again, and the run reads
+the manifest once more only under the sweep's lock (where it may have changed since)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from asp_dist.results import store
 from asp_dist.spec import CellSpec
@@ -50,6 +52,8 @@ class Plan:
     specs: list[CellSpec]
     space_text: str | None = None  # the space file as read (None: a resume from the manifest)
     logging: dict = field(default_factory=dict)  # the space file's [logging] table (asp_dist.sweep.spaces)
+    # The sweep's manifest as the checks before the run read it (None: a new sweep; preflight.UNREAD: not read)
+    manifest: Any = preflight.UNREAD
 
     @classmethod
     def from_space(cls, space: str, name: str | None = None) -> "Plan":
@@ -62,4 +66,9 @@ class Plan:
     def from_sweep(cls, results: str | Path, name: str) -> "Plan":
         """An existing sweep, from its manifest (no space file needed)."""
         _, manifest = ledger.read_sweep(results, name)
-        return cls(name, manifest["space"], ledger.specs_from_manifest(manifest))
+        return cls.from_manifest(name, manifest)
+
+    @classmethod
+    def from_manifest(cls, name: str, manifest: dict) -> "Plan":
+        """An existing sweep, from its manifest as read (preflight.check_can_resume)."""
+        return cls(name, manifest["space"], ledger.specs_from_manifest(manifest), manifest=manifest)

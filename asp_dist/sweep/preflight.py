@@ -22,25 +22,40 @@ from asp_dist.results import store
 from asp_dist.results.location import AnyPath
 from asp_dist.results.s3 import S3Path, check_bucket
 from asp_dist.spec import CellSpec
-from asp_dist.sweep.ledger import (DEFAULT_CONNECT_TIMEOUT_S, _sweep_lease, lock_holder, new_manifest, read_sweep,
-                                   specs_from_manifest, sweep_dir_for)
-from asp_dist.sweep.ledger import extended_manifest
+from asp_dist.sweep.ledger import (
+    DEFAULT_CONNECT_TIMEOUT_S,
+    _sweep_lease,
+    check_manifest_shape,
+    extended_manifest,
+    lock_holder,
+    new_manifest,
+    read_sweep,
+    sweep_dir_for,
+)
 from asp_dist.sweep.packing import Packing, resolve_packing
 from asp_dist.sweep.spaces import grid_hash
 
+# A check's `manifest` argument: the sweep's manifest as the caller read it (None: it has none), so that one run
+# reads it once before its lock and once under it; UNREAD (the default) reads it here.
+UNREAD: Any = type("Unread", (), {"__repr__": lambda self: "UNREAD"})()
+
+
+def _manifest(sweep_dir: AnyPath, manifest: Any) -> dict[str, Any] | None:
+    return store.read_manifest(sweep_dir) if manifest is UNREAD else manifest
+
 
 # ---- where the sweep lives -----------------------------------------------------------------------
-def _remote_is_foreign(sweep_dir: S3Path) -> bool:
+def _remote_is_foreign(sweep_dir: S3Path, manifest: Any = UNREAD) -> bool:
     """An S3 prefix with objects but no manifest: not a sweep (hidden names such as a lease or a write
     probe left by an interrupted start do not count)."""
-    if store.read_manifest(sweep_dir) is not None:
+    if _manifest(sweep_dir, manifest) is not None:
         return False
     return any(store.visible(p, sweep_dir) for p in sweep_dir.rglob("*"))
 
 
-def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool) -> None:
+def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool, manifest: Any = UNREAD) -> None:
     check_bucket(sweep_dir)
-    if _remote_is_foreign(sweep_dir):
+    if _remote_is_foreign(sweep_dir, manifest):
         raise SweepError(f"{sweep_dir} holds objects and is not a sweep (no manifest.json); choose another --name")
     if write_probe:  # credentials that may read but not write are refused before anything else is written
         probe = sweep_dir / f".write-test-{os.getpid()}-{int(time.time() * 1000)}"
@@ -52,12 +67,12 @@ def _check_remote_sweep_dir(sweep_dir: S3Path, write_probe: bool) -> None:
                              f"with --results") from None
 
 
-def check_sweep_dir(sweep_dir: AnyPath) -> None:
+def check_sweep_dir(sweep_dir: AnyPath, manifest: Any = UNREAD) -> None:
     """Refuse to start in a directory that holds something other than a sweep, or cannot be written."""
     if isinstance(sweep_dir, S3Path):
-        _check_remote_sweep_dir(sweep_dir, write_probe=True)
+        _check_remote_sweep_dir(sweep_dir, write_probe=True, manifest=manifest)
         return
-    if sweep_dir.exists() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+    if sweep_dir.exists() and _manifest(sweep_dir, manifest) is None and any(sweep_dir.iterdir()):
         raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
     try:
         sweep_dir.mkdir(parents=True, exist_ok=True)
@@ -74,14 +89,14 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
-def check_sweep_dir_readonly(sweep_dir: AnyPath) -> None:
+def check_sweep_dir_readonly(sweep_dir: AnyPath, manifest: Any = UNREAD) -> None:
     """check_sweep_dir without touching the disk: what a run would refuse, refused before anything is written."""
     if isinstance(sweep_dir, S3Path):
-        _check_remote_sweep_dir(sweep_dir, write_probe=False)
+        _check_remote_sweep_dir(sweep_dir, write_probe=False, manifest=manifest)
         return
     if sweep_dir.exists() and not sweep_dir.is_dir():
         raise SweepError(f"{sweep_dir} exists and is not a directory; choose another --name or --results")
-    if sweep_dir.is_dir() and store.read_manifest(sweep_dir) is None and any(sweep_dir.iterdir()):
+    if sweep_dir.is_dir() and _manifest(sweep_dir, manifest) is None and any(sweep_dir.iterdir()):
         raise SweepError(f"{sweep_dir} exists and is not a sweep (no manifest.json); choose another --name")
     existing = _nearest_existing(sweep_dir)
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
@@ -176,11 +191,11 @@ def check_address(address: str, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) ->
 
 # ---- the grid and the lock ----------------------------------------------------------------------
 def check_manifest(sweep_dir: AnyPath, name: str, specs: list[CellSpec], space: str,
-                   packing: Packing | None = None, extend: bool = False) -> dict[str, Any]:
+                   packing: Packing | None = None, extend: bool = False, manifest: Any = UNREAD) -> dict[str, Any]:
     """The sweep's manifest (a new one, with `packing`, if it has none); refuses a grid that differs from
-    the stored one, unless `extend` and the new grid only adds cells (ledger.extended_manifest: then the
-    manifest of the grown grid, to be written before any new cell runs)."""
-    existing = store.read_manifest(sweep_dir)
+    the stored one (`manifest`), unless `extend` and the new grid only adds cells (ledger.extended_manifest:
+    then the manifest of the grown grid, to be written before any new cell runs)."""
+    existing = _manifest(sweep_dir, manifest)
     if existing is None:
         return new_manifest(name, space, specs, packing)
     digest, stored = grid_hash(specs), existing.get("grid_hash")
@@ -209,28 +224,27 @@ def check_not_running(sweep_dir: AnyPath) -> None:
 
 
 def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], space: str,
-                    pack: str | None = None, pack_size: int | None = None, extend: bool = False) -> AnyPath:
+                    pack: str | None = None, pack_size: int | None = None, extend: bool = False) -> dict[str, Any] | None:
     """Everything `sweep` refuses about where it would run, checked without writing: the name, the
     results dir, a directory that is not a sweep, a sweep started with another grid or packing, a
-    running sweep. The run checks them again under its lock (tune._run); this is the early, read-only
-    answer."""
+    running sweep. Returns the sweep's manifest as read here (None: a new sweep), for the plan to carry.
+    The run checks them again under its lock (tune._run); this is the early, read-only answer."""
     sweep_dir = sweep_dir_for(results, name)
-    check_sweep_dir_readonly(sweep_dir)
-    manifest = store.read_manifest(sweep_dir)
+    manifest = store.read_manifest(sweep_dir)  # None also where sweep_dir is a file: refused next
+    check_sweep_dir_readonly(sweep_dir, manifest)
     resolve_packing(pack, pack_size, manifest)
     if manifest is not None:
-        read_sweep(results, name)  # its manifest's shape
-        check_manifest(sweep_dir, name, specs, space, extend=extend)
+        check_manifest_shape(manifest, sweep_dir)
+        check_manifest(sweep_dir, name, specs, space, extend=extend, manifest=manifest)
         check_not_running(sweep_dir)
-    return sweep_dir
+    return manifest
 
 
 def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
-                     pack_size: int | None = None) -> tuple[str, list[CellSpec]]:
-    """Everything `resume` refuses, checked without writing; returns the sweep's space and specs."""
+                     pack_size: int | None = None) -> dict[str, Any]:
+    """Everything `resume` refuses, checked without writing; returns the sweep's manifest (read once)."""
     sweep_dir, manifest = read_sweep(results, name)
-    specs = specs_from_manifest(manifest)
     resolve_packing(pack, pack_size, manifest)
-    check_sweep_dir_readonly(sweep_dir)
+    check_sweep_dir_readonly(sweep_dir, manifest)
     check_not_running(sweep_dir)
-    return manifest["space"], specs
+    return manifest

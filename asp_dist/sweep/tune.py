@@ -446,18 +446,21 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                            connect_timeout_s=connect_timeout_s, stream=stream)
 
     with signals.sigterm_as_interrupt(), _disk_full_is_one_line(sweep_dir, name, results):
+        # The manifest as the plan's checks read it (the CLI's); read here only when the plan was made elsewhere.
+        seen = store.read_manifest(sweep_dir) if plan.manifest is preflight.UNREAD else plan.manifest
         if address:  # a cluster that does not answer is refused before anything is written
-            preflight.check_sweep_dir_readonly(sweep_dir)
-            resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))
+            preflight.check_sweep_dir_readonly(sweep_dir, seen)
+            resolve_packing(pack, pack_size, seen)
             preflight.check_address(address, connect_timeout_s)
         # A cluster is joined before the sweep dir is written; the embedded Ray starts only if a cell is pending.
         with session() if address else nullcontext():
-            preflight.check_sweep_dir(sweep_dir)
+            preflight.check_sweep_dir(sweep_dir, seen)
             with ledger.sweep_lock(sweep_dir, connect_timeout_s=connect_timeout_s):
-                packing = resolve_packing(pack, pack_size, store.read_manifest(sweep_dir))  # refuses another one
+                stored = store.read_manifest(sweep_dir)  # once under the lock: another run may have changed it
+                packing = resolve_packing(pack, pack_size, stored)  # refuses another one
                 # refuses a different grid (with --extend: one that only adds cells grows the sweep)
-                manifest = preflight.check_manifest(sweep_dir, name, specs, space, packing, extend=options.extend)
-                stored = store.read_manifest(sweep_dir)
+                manifest = preflight.check_manifest(sweep_dir, name, specs, space, packing, extend=options.extend,
+                                                    manifest=stored)
                 if stored is None or stored["grid_hash"] != manifest["grid_hash"]:  # before any new cell runs
                     store.write_manifest(sweep_dir, manifest)
                 if not isinstance(sweep_dir, S3Path):  # on S3 checkpoints are staged in Ray's scratch
