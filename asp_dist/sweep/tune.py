@@ -93,9 +93,8 @@ log = logging.getLogger(__name__)
 class SweepCallback(tune.Callback):
     """Feeds the sweep's progress view and records cells that failed after every retry.
 
-    Tune pickles its callbacks with the experiment and a restored experiment brings back the
-    pickled ones; only the path and the grid are pickled, and a restored callback starts its own
-    view on stderr."""
+    Tune pickles its callbacks with its experiment state (asp-dist never restores one: each run is a new
+    experiment); only the path and the grid are pickled."""
 
     def __init__(self, sweep_dir: str, name: str, grid: dict[str, str], counter: SweepCounter | None = None):
         self.sweep_dir, self.name, self.grid = sweep_dir, name, grid  # grid: cell id -> "domain/method"
@@ -238,7 +237,7 @@ class _DiskFullLogFilter(logging.Filter):
 
 class DiskFullStopper(tune.Stopper):
     """Stops every trial once one found the disk full: the other cells would fail the same way. (State is
-    this driver process's, _DISK_FULL, so that a restored experiment's unpickled stopper sees it too.)"""
+    this driver process's, _DISK_FULL, not the stopper's, which Tune pickles with its experiment state.)"""
 
     def __call__(self, trial_id, result) -> bool:
         return bool(result.get(DISK_FULL))
