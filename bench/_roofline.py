@@ -5,8 +5,11 @@ memory-bound pass any float32-Adam update pays."""
 
 from __future__ import annotations
 
+import json
+import os
 import statistics
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 import torch
@@ -96,3 +99,11 @@ def roofline(name: str, step: Callable[[], None], params: list[torch.Tensor], up
           f"{row['of_shape_rate']:.0%}  Adam {row['adam_alone_ms']:.2f} ms -> ceiling {row['ceiling_with_adam']:.0%}  "
           f"other {row['other_ms']:.2f} ms", flush=True)
     return row
+
+
+def finish(result: dict, load_before: tuple[float, float, float], path: Path | None) -> None:
+    """Close a roofline run's result (load after, date), say the load around it, and write it to `path`."""
+    result.update(load_after=os.getloadavg(), date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    print(f"load average before {load_before[0]:.2f}, after {result['load_after'][0]:.2f}")
+    if path:
+        path.write_text(json.dumps(result, indent=1) + "\n")

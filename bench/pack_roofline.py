@@ -21,17 +21,15 @@ update did nothing but its products. paper_grid_floor.py's particle and lever fi
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 from _common import machine_info  # noqa: E402
-from _roofline import roofline  # noqa: E402
+from _roofline import finish, roofline  # noqa: E402
 from bench_packing import build_pack, cell_data, grid_cells, packed_trainer  # noqa: E402
 
 from asp_dist.sweep.spaces import expand  # noqa: E402
@@ -94,10 +92,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"({floor['floor_min_pack_method_63']:.2f} min as packs of 63 of a method); the updates as "
                   f"measured {floor['update_min_pack_trial']:.1f} min", flush=True)
             result["domains"][domain] = {"rows": rows, "grid": floor}
-    result.update(load_after=os.getloadavg(), date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
-    print(f"load average before {load_before[0]:.2f}, after {result['load_after'][0]:.2f}")
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=1) + "\n")
+    finish(result, load_before, args.json)
     return 0
 
 

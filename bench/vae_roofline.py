@@ -37,7 +37,6 @@ many updates ran before it.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import resource
 import sys
@@ -49,7 +48,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 from _common import machine_info  # noqa: E402
-from _roofline import cpu_per_call, roofline  # noqa: E402
+from _roofline import cpu_per_call, finish, roofline  # noqa: E402
 
 from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.domains.vae import VAEDomain  # noqa: E402
@@ -182,11 +181,8 @@ def main(argv: list[str] | None = None) -> int:
               "layout": [layout(spec, r) for r in (spec.vae_base_batch, spec.batch_size + spec.paired,
                                                    spec.paired)],
               "implicit_bf16": implicit_bf16(spec.vae_base_batch, spec.vae_hidden),
-              "allocator": allocator(updates, ["base", "asp"], args.updates),
-              "load_after": os.getloadavg(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
-    print(f"load average before {load_before[0]:.2f}, after {result['load_after'][0]:.2f}")
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=1) + "\n")
+              "allocator": allocator(updates, ["base", "asp"], args.updates)}
+    finish(result, load_before, args.json)
     return 0
 
 

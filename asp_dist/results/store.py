@@ -363,6 +363,16 @@ def damaged_cells(sweep_dir: str | AnyPath, grid: dict[str, tuple[str, str]]) ->
     return found
 
 
+def damaged_stamp() -> str:
+    """The UTC time that names one setting-aside: damaged/<stamp>/ keeps each file at its place in the sweep."""
+    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+
+
+def damaged_dest(sweep_dir: AnyPath, stamp: str, path: AnyPath) -> AnyPath:
+    """Where a damaged file of the sweep (a cell's row or curve, a base) is kept: damaged/<stamp>/<its path>."""
+    return sweep_dir / DAMAGED_DIR / stamp / path.relative_to(sweep_dir)
+
+
 def set_aside_damaged(sweep_dir: str | AnyPath, grid: dict[str, tuple[str, str]]) -> list[tuple[AnyPath, AnyPath, str]]:
     """Move every damaged cell file of `grid` (damaged_cells) and its curve into ``damaged/<UTC time>/``, so
     that the cell trains again and its new row is written once; returns (file, where it went, what was
@@ -371,14 +381,14 @@ def set_aside_damaged(sweep_dir: str | AnyPath, grid: dict[str, tuple[str, str]]
     if not damaged:
         return []
     sweep_dir = as_path(sweep_dir)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    stamp = damaged_stamp()
     moved = []
     for cell_id, (path, problem) in sorted(damaged.items()):
         domain, method = grid[cell_id]
         for old in (path, curve_path(sweep_dir, domain, method, cell_id)):
             if old is not path and not old.exists():
                 continue
-            new = sweep_dir / DAMAGED_DIR / stamp / old.relative_to(sweep_dir)
+            new = damaged_dest(sweep_dir, stamp, old)
             move_aside(old, new)
             if old is path:
                 moved.append((path, new, problem))

@@ -32,7 +32,6 @@ import fcntl
 import json
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 from asp_dist.domains.contract import ProgressFn
@@ -89,9 +88,7 @@ def _stored(path: AnyPath, spec: CellSpec) -> BaseModel | None:
 
 def _set_aside(path: AnyPath, problem: str) -> None:
     """Move a damaged base file to <sweep>/damaged/<UTC time>/bases/, kept for inspection, never read again."""
-    sweep_dir = path.parent.parent  # <sweep>/bases/<key>.pt
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-    dest = sweep_dir / store.DAMAGED_DIR / stamp / path.parent.name / path.name
+    dest = store.damaged_dest(path.parent.parent, store.damaged_stamp(), path)  # <sweep>/bases/<key>.pt
     try:
         move_aside(path, dest)
     except FileNotFoundError:  # set aside by another cell meanwhile

@@ -269,13 +269,13 @@ def _earlier_checkpoints(sweep_dir: AnyPath, name: str) -> list[AnyPath]:
     """state.pt of every checkpoint the unit `name` left under the sweep's Tune experiments
     (tune/run-<n>/<name>/checkpoint_<k>/), newest first (by n, then k)."""
     found = []
-    for run in _numbered(sweep_dir / TUNE_DIR, "run-"):
-        for checkpoint in _numbered(run[1] / name, "checkpoint_"):
+    for run in numbered_entries(sweep_dir / TUNE_DIR, "run-"):
+        for checkpoint in numbered_entries(run[1] / name, "checkpoint_"):
             found.append(((run[0], checkpoint[0]), checkpoint[1] / "state.pt"))
     return [path for _, path in sorted(found, key=lambda item: item[0], reverse=True)]
 
 
-def _numbered(directory: AnyPath, prefix: str) -> list[tuple[int, AnyPath]]:
+def numbered_entries(directory: AnyPath, prefix: str) -> list[tuple[int, AnyPath]]:
     """(n, path) of the entries <prefix><n> of a local or S3 directory; none when it does not exist."""
     try:
         entries = list(directory.iterdir())

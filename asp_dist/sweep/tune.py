@@ -74,6 +74,7 @@ from asp_dist.sweep.trial import (  # noqa: F401  (train_cell, unit_config, tria
     DISK_FULL,
     TUNE_DIR,
     config_cells,
+    numbered_entries,
     train_cell,
     trial_name,
     unit_config,
@@ -265,11 +266,7 @@ def _new_experiment(sweep_dir: AnyPath, pending: list[Unit]) -> str:
     the new one continues from the newest checkpoint its name left under an earlier one (asp_dist.sweep.trial),
     read as plain tensors. tune/current.json records which experiment covers which cells."""
     tune_root = sweep_dir / TUNE_DIR
-    try:
-        numbers = [int(p.name[4:]) for p in tune_root.iterdir() if p.name.startswith("run-") and p.name[4:].isdigit()]
-    except (FileNotFoundError, NotADirectoryError):
-        numbers = []
-    experiment = f"run-{max(numbers, default=0) + 1}"
+    experiment = f"run-{max((n for n, _ in numbered_entries(tune_root, 'run-')), default=0) + 1}"
     cells = sorted(cell_id for unit in pending for cell_id in unit.cell_ids)
     write_replace(tune_root / TUNE_CURRENT, json.dumps({"experiment": experiment, "cells": cells}))
     return experiment
