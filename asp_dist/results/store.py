@@ -153,7 +153,7 @@ VERIFY_THREADS = 4  # at most; footers are parsed (and on S3 fetched) in paralle
 # again), and a missing, stale or unreadable index only costs the time it saves. Local disk only (on S3 the
 # listing already gives size and Last-Modified, and status is dominated by the requests).
 VERDICTS_FILE = ".verified.json"  # in cells/: a hidden name, so no reader of the dataset ever sees it
-_VERDICTS_VERSION = 2  # 2: a good verdict also says every declared metric is finite
+_VERDICTS_VERSION = 2  # 2: a good verdict also says the required metrics (contract.REQUIRED_METRICS) are finite
 _INDEXED: dict[str, dict[str, list[int]]] = {}  # cells/ root -> the good verdicts its index holds (as read or written)
 
 
