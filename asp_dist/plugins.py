@@ -4,7 +4,7 @@ asp-dist registers its own domains (group ``asp_dist.domains``) and methods (``a
 pyproject.toml exactly as another package registers its own, so a built-in has no privilege a plugin lacks.
 A group is read once, on first use, never when this module is imported. `asp_dist.spec` reads the domains'
 group when it is first imported (it makes their knobs fields of CellSpec), so every command that imports
-it, `asp-dist --help` included, loads every domain's card; cards import no torch (asp_dist.domains.contract).
+it, `asp-dist --help` included, loads every domain's card; cards import no torch (asp_dist.core.contract).
 
 A plugin that cannot be loaded or fails its group's declaration check, or whose name another package
 registers too, is *set aside*: the others work as before, and asking for it gives one line naming the plugin

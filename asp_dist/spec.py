@@ -20,7 +20,7 @@ import numbers
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any, get_type_hints
 
-from asp_dist.domains.registry import DOMAINS, get_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import UNSET, Range, choice, integers, log_uniform, uniform

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.sweep.tune_plan import curve_points, winning_configuration
 
 

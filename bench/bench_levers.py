@@ -20,7 +20,7 @@ import torch  # noqa: E402
 from _common import peak_rss_mib  # noqa: E402
 
 from asp_dist.commands.common import parse_overrides  # noqa: E402
-from asp_dist.domains import get_domain  # noqa: E402
+from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import train_accepted_base  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402

@@ -70,7 +70,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 from _common import machine_info, peak_rss_mib, timed  # noqa: E402
 
-from asp_dist.domains import DOMAINS, get_domain  # noqa: E402
+from asp_dist.core.registry import DOMAINS, get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep.packing import DEFAULT_PACK_SIZE  # noqa: E402
 from asp_dist.sweep.spaces import expand  # noqa: E402

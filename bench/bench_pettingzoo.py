@@ -32,7 +32,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from asp_dist.domains import DOMAINS, get_domain  # noqa: E402
+from asp_dist.core.registry import DOMAINS, get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 
 
@@ -151,7 +151,7 @@ def main() -> int:
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.domain not in DOMAINS:
-        from asp_dist.domains.registry import set_aside
+        from asp_dist.core.registry import set_aside
 
         why = set_aside().get(args.domain, "not registered: pip install -e '.[pettingzoo]' (entry points)")
         print(f"bench_pettingzoo: domain {args.domain!r}: {why}", file=sys.stderr)

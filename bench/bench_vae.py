@@ -21,8 +21,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import torch  # noqa: E402
 from _common import cell_timing, peak_rss_mib  # noqa: E402
 
+from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.data.mnist import PIXELS, load_mnist  # noqa: E402
-from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.training.bases import BaseModel  # noqa: E402
 from asp_dist.training.cell import run_cell  # noqa: E402

@@ -36,8 +36,8 @@ import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 from bench_vae import base_update_flops, matmul_rate, update_flops  # noqa: E402
 
+from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.data.mnist import PIXELS  # noqa: E402
-from asp_dist.domains import get_domain  # noqa: E402
 from asp_dist.domains.vae import PAIRED_BLOCK  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 from asp_dist.sweep.spaces import expand  # noqa: E402

@@ -50,7 +50,7 @@ import torch  # noqa: E402
 from _common import machine_info  # noqa: E402
 from _roofline import cpu_per_call, finish, roofline  # noqa: E402
 
-from asp_dist.domains import get_domain  # noqa: E402
+from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.domains.vae import VAEDomain  # noqa: E402
 from asp_dist.domains.vae.base_update import HandDerivedBaseUpdate  # noqa: E402
 from asp_dist.domains.vae.fast import OnePassVAETrainer  # noqa: E402

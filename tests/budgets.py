@@ -19,9 +19,8 @@ TINY: dict[str, dict] = {
 
 
 def tiny_spec(domain: str, **changes):
+    from asp_dist.core.registry import get_domain
     from asp_dist.spec import CellSpec
-
-    from asp_dist.domains import get_domain
 
     small = TINY[domain] if domain in TINY else get_domain(domain).smoke
     return CellSpec(domain=domain, **{**small, **changes})

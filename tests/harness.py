@@ -249,7 +249,7 @@ def hold_a_running_cell_at_its_checkpoint(read_state, checkpoint_exists, done, r
 def finished_row(spec, **values: Any) -> dict[str, Any]:
     """A result row made by hand (no training) that the store counts as finished: the spec's columns, its cell id
     and every metric a row must have finite (0.5 each unless `values` say otherwise)."""
-    from asp_dist.domains.contract import REQUIRED_METRICS
+    from asp_dist.core.contract import REQUIRED_METRICS
 
     return {**spec.to_dict(), "cell_id": spec.cell_id, **{f"eval_{m}": 0.5 for m in REQUIRED_METRICS}, **values}
 

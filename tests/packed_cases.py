@@ -17,8 +17,8 @@ from typing import Any, Callable
 import torch
 from budgets import TINY
 
-from asp_dist.domains import DOMAINS as REGISTRY
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import DOMAINS as REGISTRY
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.levers import AGENTS
 from asp_dist.knobs import BASE_ONLY
 from asp_dist.spec import CellSpec

@@ -15,7 +15,7 @@ from asp_dist.analysis.paper import knob_label, metric_label, paper_claim, paper
 from asp_dist.analysis.plots import plot_all
 from asp_dist.analysis.report import write_report
 from asp_dist.analysis.tables import StatsConfig
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 
 
 def patch_facts(monkeypatch, domain: str, **changes) -> None:

@@ -13,7 +13,7 @@ import pytest
 from test_stats import make_rows, write_sweep
 
 from asp_dist.cli import main
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.training.row import schema as row_schema
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "results" / "examples"

@@ -80,7 +80,7 @@ def test_a_domain_card_loads_its_game_on_first_use(tmp_path):
     """Resolving specs of every domain stays light; the first torch method of a domain imports its game."""
     probe = f"""
 import sys
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.spec import CellSpec
 ids = [CellSpec(domain=d, method='asp', paired=2).resolved().cell_id for d in DOMAINS]
 light = sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})

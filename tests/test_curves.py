@@ -6,7 +6,7 @@ import copy
 
 import pytest
 
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
 from asp_dist.training.trainer import CURVE_POINTS, PROBE_EVERY

@@ -1,6 +1,6 @@
 """Every registered domain, one contract (BenchMARL-style: parametrised over the registry).
 
-check_domain (asp_dist/domains/contract.py) checks determinism, shapes and gradients; here we
+check_domain (asp_dist/core/contract.py) checks determinism, shapes and gradients; here we
 add what the sweep relies on: bases and agents survive a save/load round trip (the base
 cache stores bases as bytes), a whole tiny cell runs for every method, and the paper's
 facts about the domain are declared."""
@@ -10,8 +10,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from asp_dist.domains import DOMAINS
-from asp_dist.domains.contract import assert_same_params, check_domain
+from asp_dist.core.contract import assert_same_params, check_domain
+from asp_dist.core.registry import DOMAINS
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
@@ -29,7 +29,7 @@ def test_contract(domain, tiny):
 def test_the_contract_names_a_metric_that_is_not_finite(monkeypatch, capsys, tiny, bad, says):
     """check_domain (and `asp-dist check-domain`) says which metric is NaN, not "same seed gave different
     metrics" (NaN != NaN); a cell of that domain fails with the same words and writes no row."""
-    from asp_dist.domains.contract import ContractError
+    from asp_dist.core.contract import ContractError
     from asp_dist.training.row import InvalidRow
 
     domain = DOMAINS["signaling"]

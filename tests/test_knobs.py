@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import COMMON_DEFAULTS, HASH_NEUTRAL, CellSpec

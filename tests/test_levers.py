@@ -12,7 +12,7 @@ import torch
 from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.levers import (
     AGENTS,
     CommNet,

@@ -2,7 +2,7 @@
 
 import torch
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.methods import compose_loss, method_weights
 from asp_dist.training.trainer import Trainer

@@ -33,7 +33,7 @@ from packed_cases import (
     trainer_class,
 )
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.knobs import ANY, Knob
 from asp_dist.training import artefacts, engines
 from asp_dist.training.bases import train_accepted_base

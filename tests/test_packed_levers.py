@@ -13,7 +13,7 @@ from budgets import tiny_spec
 from packed_cases import LEVERS, AdamDrift, adam_sqrt_v, flat_grads, flat_params, float32_tol, lone
 
 import asp_dist.domains.levers.packed as packed_mod
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.levers.packed import PackedLeverTrainer, pack_key
 
 supports = PackedLeverTrainer.supports

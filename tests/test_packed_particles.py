@@ -13,7 +13,7 @@ from budgets import tiny_spec
 from checkpoints import checkpoint_sink
 from packed_cases import PARTICLES, AdamDrift, adam_sqrt_v, disc_grad_tol, flat_grads, flat_params, float32_tol, lone
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.particles.packed import PackedParticleTrainer
 from asp_dist.spec import CellSpec
 from asp_dist.training import artefacts

@@ -11,10 +11,19 @@ from __future__ import annotations
 import pytest
 import torch
 from budgets import tiny_spec
-from packed_cases import (VAE, AdamDrift, adam_sqrt_v, disc_grad_tol, disc_params, flat_grads, flat_params,
-                          float32_tol, stacked_sqrt_v)
+from packed_cases import (
+    VAE,
+    AdamDrift,
+    adam_sqrt_v,
+    disc_grad_tol,
+    disc_params,
+    flat_grads,
+    flat_params,
+    float32_tol,
+    stacked_sqrt_v,
+)
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.vae.fast import OnePassVAETrainer
 from asp_dist.domains.vae.hand_derived import HandDerivedVAETrainer
 from asp_dist.domains.vae.packed import IMPLEMENTS, PackedVAETrainer, pack_key

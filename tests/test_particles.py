@@ -8,7 +8,7 @@ import pytest
 import torch
 from budgets import tiny_spec
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.particles import BOX, MOVES, NEAR_REWARD, POOL, ParticleAgents, a2c_update, env_step, target_for
 from asp_dist.spec import CellSpec, SpecError
 from asp_dist.training import artefacts

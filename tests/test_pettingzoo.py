@@ -23,7 +23,7 @@ from gymnasium import spaces  # noqa: E402
 from harness import cli  # noqa: E402
 from pettingzoo import ParallelEnv  # noqa: E402
 
-from asp_dist.domains import DOMAINS, get_domain  # noqa: E402
+from asp_dist.core.registry import DOMAINS, get_domain  # noqa: E402
 from asp_dist.domains.pettingzoo import INSTALL, MPEReference, MPESpeakerListener, PettingZooDomain, PettingZooGame  # noqa: E402
 from asp_dist.errors import SpecError  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402

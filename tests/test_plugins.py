@@ -14,11 +14,10 @@ import textwrap
 from pathlib import Path
 
 import pytest
-
 from harness import env
 
 GOOD = '''
-from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts
+from asp_dist.core.contract import GameDomain, MetricInfo, PaperFacts
 from asp_dist.knobs import Knob
 
 
@@ -99,7 +98,7 @@ def test_a_plugin_domain_is_found_and_its_knobs_are_cell_fields_and_move_no_othe
     ("import-error", "import not_a_module_anywhere\n", "broken = asp_broken:Domain",
      "domain plugin 'broken' (asp_broken:Domain, from asp-broken 0.1) cannot be loaded: ModuleNotFoundError"),
     ("not-a-domain", "class NotADomain:\n    pass\n", "broken = asp_broken:NotADomain",
-     "it is a NotADomain, not an asp_dist.domains.contract.Domain"),
+     "it is a NotADomain, not an asp_dist.core.contract.Domain"),
     ("knob-twice", GOOD.replace('"toy"', '"broken"').replace("toy_", "broken_").replace(
         'Knob("broken_mode", str, "a", "Mode of the toy world.", choices=("a", "b"))',
         'Knob("broken_size", int, 1, "Again.")'), "broken = asp_broken:ToyDomain",

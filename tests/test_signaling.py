@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.signaling import class_sizes, state_classes
 from asp_dist.spec import CellSpec
 

@@ -12,7 +12,7 @@ from golden.cells import golden_specs
 
 import asp_dist.training.cell as cell_module
 from asp_dist.cli import main
-from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SweepError
 from asp_dist.spec import FIELD_NAMES, MAX_TENSOR, UPPER_BOUNDS, CellSpec, field_type
 from asp_dist.sweep import spaces

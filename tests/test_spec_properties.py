@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.spec import (
     _OPTIONAL,
     CHOICES,

@@ -14,7 +14,7 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.errors import SchemaError
 from asp_dist.results import store
 from asp_dist.spec import FIELD_NAMES, CellSpec

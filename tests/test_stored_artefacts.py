@@ -13,7 +13,7 @@ import torch
 from budgets import tiny_spec
 from planted import PLANTS
 
-from asp_dist.domains.contract import assert_same_params
+from asp_dist.core.contract import assert_same_params
 from asp_dist.results import store
 from asp_dist.sweep.base_cache import base_path, get_base
 from asp_dist.sweep.ledger import new_manifest

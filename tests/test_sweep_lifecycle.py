@@ -322,7 +322,7 @@ def test_a_planted_checkpoint_runs_nothing_and_its_cell_starts_over(trainable, m
 def test_a_cell_without_finite_metrics_fails_in_one_line_and_resume_retries_it(trainable, monkeypatch, bad, capsys):
     """A row is finished only if every metric its domain declares is there and finite: otherwise no row is
     written, the failure is recorded under its cause, and the cell is pending again for `resume`."""
-    from asp_dist.domains import get_domain
+    from asp_dist.core.registry import get_domain
     from asp_dist.sweep.ledger import new_manifest
 
     sweep_tune, config, spec, sweep_dir, _, reports = trainable

@@ -11,7 +11,7 @@ import pytest
 import torch
 from budgets import tiny_spec
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.vae import VAE
 from asp_dist.spec import CellSpec, SpecError
 from asp_dist.training.bases import train_accepted_base

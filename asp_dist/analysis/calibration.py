@@ -23,7 +23,7 @@ from asp_dist.analysis.layout import NOT_KNOBS
 from asp_dist.analysis.paper import paper_paired_ranges
 from asp_dist.analysis.power import resampled
 from asp_dist.analysis.rank_tests import friedman_each, mean_ranks, mean_ranks_each
-from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.spec import CellSpec
 
 METHODS = ("pc", "osp", "asp")

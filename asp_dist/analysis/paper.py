@@ -8,8 +8,8 @@ The facts describe ``eval_mixed``; another metric gets only the generic behaviou
 
 from __future__ import annotations
 
-from asp_dist.domains import DOMAINS
-from asp_dist.domains.contract import PaperFacts
+from asp_dist.core.contract import PaperFacts
+from asp_dist.core.registry import DOMAINS
 
 PAPER_METRIC = "eval_mixed"  # the metric PaperFacts' label and threshold are about
 GENERIC_KNOB_LABELS = {"paired": "paired examples |P| (count)"}

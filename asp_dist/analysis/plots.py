@@ -14,6 +14,8 @@
   treatment; one figure per (series, condition), at most MAX_CURVE_FIGURES_PER_DOMAIN per domain.
 
 Every y axis names the metric with its unit and says which direction is better.
+(About 520 lines, over the project's 500: each figure is a short function, and they share the style, the
+panel layout, the axis labels and the saving; split by kind, every part would import the same helpers back.)
 """
 
 from __future__ import annotations
@@ -312,7 +314,7 @@ def _scatter(ax: plt.Axes, points: np.ndarray, colors: np.ndarray, title: str) -
 def plot_figure_data(result: StatsResult, out_dir: Path) -> tuple[list[Figure], list[str]]:
     """The figures each domain draws from its rows' figure_data (Domain.draw_figures: VAE latents and
     reconstructions, the levers' communication PCA), domain by domain; the core names no kind."""
-    from asp_dist.domains import DOMAINS
+    from asp_dist.core.registry import DOMAINS
 
     by_domain: dict[str, list[tuple[dict, dict]]] = {}
     for rec, data in _figure_payloads(result.rows):

@@ -12,8 +12,8 @@ from asp_dist.spec import CellSpec
 
 def cmd_check_domain(args: argparse.Namespace) -> int:
     """The contract checker as a command: what a plugin author runs before anything else."""
-    from asp_dist.domains import get_domain
-    from asp_dist.domains.contract import ContractError, check_domain
+    from asp_dist.core.contract import ContractError, check_domain
+    from asp_dist.core.registry import get_domain
     from asp_dist.method_registry import method_order
     from asp_dist.training.cell import run_cell
 
@@ -50,8 +50,8 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
 def check_trainers(name: str) -> None:
     """ContractError naming a trainer of the domain that the trainer registry refuses (asp_dist.training.engines:
     its `implements` leaves a knob of the domain out)."""
-    from asp_dist.domains import get_domain
-    from asp_dist.domains.contract import ContractError
+    from asp_dist.core.contract import ContractError
+    from asp_dist.core.registry import get_domain
     from asp_dist.training.engines import trainer_problems
 
     for trainer in get_domain(name).trainers:

@@ -35,7 +35,7 @@ def refuse_set(items: Sequence[str], taken: dict[str, str]) -> None:
 def check_data(specs: Sequence[CellSpec]) -> None:
     """Each domain of the cells loads and verifies the data its cells read (Domain.check_data), so a missing
     or corrupt copy is refused before any work starts (e.g. MNISTError; `main` prints it as one line)."""
-    from asp_dist.domains import get_domain
+    from asp_dist.core.registry import get_domain
 
     by_domain: dict[str, list[CellSpec]] = {}
     for spec in specs:

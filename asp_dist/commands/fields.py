@@ -15,8 +15,7 @@ def cmd_fields(args: argparse.Namespace) -> int:
     if args.markdown:
         print(knobs_page(), end="")
         return 0
-    from asp_dist.domains import DOMAINS, get_domain
-    from asp_dist.domains.registry import set_aside
+    from asp_dist.core.registry import DOMAINS, get_domain, set_aside
     from asp_dist.method_registry import METHODS
     from asp_dist.spec import COMMON_DEFAULTS
 
@@ -43,7 +42,7 @@ def knobs_page() -> str:
     install."""
     import typing
 
-    from asp_dist.domains import DOMAINS
+    from asp_dist.core.registry import DOMAINS
     from asp_dist.spec import CHOICES, COMMON_DEFAULTS, UPPER_BOUNDS
 
     built_in = [d for d in DOMAINS.values() if type(d).__module__.startswith("asp_dist.")]

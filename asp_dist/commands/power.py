@@ -47,7 +47,7 @@ def cmd_power(args: argparse.Namespace) -> int:
 
 def cmd_select(args: argparse.Namespace) -> int:
     from asp_dist.analysis.calibration import report
-    from asp_dist.domains import DOMAINS
+    from asp_dist.core.registry import DOMAINS
     from asp_dist.results.query import load_rows
 
     if args.domain not in DOMAINS:

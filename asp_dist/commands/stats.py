@@ -59,7 +59,7 @@ def parse_thresholds(items: Sequence[str]) -> dict[str, float]:
 
 
 def _check_domain(domain: str, flag: str, item: str) -> None:
-    from asp_dist.domains import DOMAINS
+    from asp_dist.core.registry import DOMAINS
 
     if domain and domain not in DOMAINS:
         raise SpecError(f"{flag} {item!r}: unknown domain {domain!r}; choose one of {', '.join(sorted(DOMAINS))}")

@@ -1,6 +1,5 @@
-"""The four domains of the paper (and the signaling game of its analysis), each a Domain
-(contract.py) registered by name in registry.py."""
-
-from asp_dist.domains.registry import DOMAINS, get_domain
-
-__all__ = ["DOMAINS", "get_domain"]
+"""The built-in domains: the paper's three (particles, vae, levers), the signaling game of its analysis and
+the PettingZoo adapter (pettingzoo). Each is a plugin as a third-party package is: it is written against the
+contract (asp_dist.core.contract), may use the trainers' shared pieces (asp_dist.training) and the figures'
+helpers (asp_dist.analysis), and is found only through its entry point in pyproject.toml
+(asp_dist.core.registry); nothing in the package imports it."""

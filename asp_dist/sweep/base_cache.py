@@ -34,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.core.contract import ProgressFn
 from asp_dist.fsutil import atomic_write
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, move_aside, write_replace

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from asp_dist import __version__
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.method_registry import METHODS
 from asp_dist.results import store

@@ -1,7 +1,7 @@
 """What a running sweep shows: cells done / running / failed / pending per domain and method,
 cells per minute, ETA, the last failure's reason and where the rows go.
 
-A cell's own progress is something else: ProgressFn callbacks (asp_dist.domains.contract), which
+A cell's own progress is something else: ProgressFn callbacks (asp_dist.core.contract), which
 `asp-dist cell` prints with asp_dist.commands.cell.CellProgressPrinter. Knows nothing of Ray: the sweep feeds it the
 ids of the cells that are done, failed and running.
 

@@ -162,7 +162,7 @@ class TrackerHub:
     def __init__(self, plan: Plan, settings: TrackingSettings, stream: TextIO):
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-        from asp_dist.domains import get_domain
+        from asp_dist.core.registry import get_domain
         from asp_dist.tracking.cells import describe_cells
         from asp_dist.tracking.hub import Hub, hub_name
         from asp_dist.training.row import code_revision

@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from asp_dist.domains import DOMAINS, get_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import Range

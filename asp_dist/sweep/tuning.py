@@ -32,6 +32,9 @@ from), so the search runs through what was done in seconds and goes on where it 
 training when the run stopped starts its cells over, and one ASHA had stopped is trained and judged again. At the end:
 `configurations.parquet` (every configuration tried: method, index, knob values, objective, its cells) and
 `tuned.toml` (each method's best configuration, as a space's [methods.<name>] settings).
+
+(About 520 lines, over the project's 500: the search, the records a resumed run reads back and the tables built
+from them are one protocol; the [tune] table's checks, which need no Ray, are apart in tune_plan.py.)
 """
 
 from __future__ import annotations

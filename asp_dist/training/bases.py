@@ -13,8 +13,8 @@ from typing import Any
 
 from torch import nn
 
-from asp_dist.domains import get_domain
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.core.contract import ProgressFn
+from asp_dist.core.registry import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training import artefacts
 from asp_dist.training.float_mode import denormals_flushed

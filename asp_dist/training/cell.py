@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.core.contract import ProgressFn
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel
 from asp_dist.training.engines import lone_trainer

@@ -36,9 +36,9 @@ import dataclasses
 import logging
 from typing import Callable, Sequence
 
-from asp_dist.domains import get_domain
+from asp_dist.core.contract import ProgressFn
+from asp_dist.core.registry import get_domain
 from asp_dist.knobs import implements_problems
-from asp_dist.domains.contract import ProgressFn
 from asp_dist.spec import CellSpec
 from asp_dist.training.pipeline import CellResult, one_domain, run_unit
 from asp_dist.training.trainer import Trainer

@@ -15,7 +15,7 @@ from typing import Callable, Iterator
 
 import torch
 
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.core.contract import ProgressFn
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel
 from asp_dist.training.row import PHASES

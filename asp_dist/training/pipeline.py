@@ -23,8 +23,8 @@ from typing import Any, Protocol
 
 import torch
 
-from asp_dist.domains import get_domain
-from asp_dist.domains.contract import ProgressFn
+from asp_dist.core.contract import ProgressFn
+from asp_dist.core.registry import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import BaseModel, BaseRejected, train_accepted_base
 from asp_dist.training.float_mode import denormals_flushed

@@ -27,13 +27,13 @@ import numpy as np
 import pyarrow as pa
 
 from asp_dist import __version__
-from asp_dist.domains import DOMAINS
+from asp_dist.core.registry import DOMAINS
 from asp_dist.errors import SchemaError
 from asp_dist.machine import cpu_model
 from asp_dist.spec import FIELD_NAMES, CellSpec, field_type
 
 if TYPE_CHECKING:
-    from asp_dist.domains.contract import Domain
+    from asp_dist.core.contract import Domain
     from asp_dist.training.bases import BaseModel
 
 PHASES = ("base", "data", "train", "eval")
@@ -179,7 +179,7 @@ def build_row(spec: CellSpec, domain: "Domain", base: "BaseModel", *, base_reuse
               resumed_from: int | None) -> dict[str, Any]:
     """The flat row of one finished cell (scalars and strings only); InvalidRow unless every metric the domain
     declares is there and finite: a row is the record that a cell is done, so it must be one stats can use."""
-    from asp_dist.domains.contract import metric_problem
+    from asp_dist.core.contract import metric_problem
 
     problem = metric_problem(domain, metrics)
     if problem is not None:

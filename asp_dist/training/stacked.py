@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from asp_dist.domains import get_domain
+from asp_dist.core.registry import get_domain
 from asp_dist.knobs import unimplemented
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries

@@ -12,8 +12,8 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from asp_dist.domains import get_domain
-from asp_dist.domains.contract import Domain, SelfPlayOut, Tensors
+from asp_dist.core.contract import Domain, SelfPlayOut, Tensors
+from asp_dist.core.registry import get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.adversary import Adversaries
 from asp_dist.training.methods import LossWeights, compose_loss, lambda_factor, method_weights

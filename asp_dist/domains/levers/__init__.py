@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.core.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 from asp_dist.knobs import Knob
 
 if TYPE_CHECKING:

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.contract import ProgressFn, SelfPlayOut, Tensors
+from asp_dist.core.contract import ProgressFn, SelfPlayOut, Tensors
 from asp_dist.domains.levers import AGENTS, POOL
 from asp_dist.nn import seeded
 

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.contract import SelfPlayOut, Tensors
+from asp_dist.core.contract import SelfPlayOut, Tensors
 from asp_dist.domains.particles import POOL, ParticlesDomain
 from asp_dist.hashing import stable_hash
 from asp_dist.nn import seeded

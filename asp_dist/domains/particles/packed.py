@@ -68,8 +68,8 @@ from typing import Any, NamedTuple, Sequence
 import torch
 import torch.nn.functional as F
 
-from asp_dist.domains import get_domain
-from asp_dist.domains.contract import Tensors
+from asp_dist.core.contract import Tensors
+from asp_dist.core.registry import get_domain
 from asp_dist.domains.particles.game import BOX, N_ACTIONS, REWARD_SCALE, ParticleAgents, env_step, target_for
 from asp_dist.knobs import ANY, BASE_ONLY
 from asp_dist.spec import CellSpec

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from asp_dist.domains.contract import Domain, MetricInfo, PaperFacts, game_attribute, require
+from asp_dist.core.contract import Domain, MetricInfo, PaperFacts, game_attribute, require
 from asp_dist.domains.pettingzoo import envs
 from asp_dist.knobs import Knob
 

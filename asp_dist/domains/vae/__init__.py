@@ -24,8 +24,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
+from asp_dist.core.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 from asp_dist.data.mnist import PIXELS
-from asp_dist.domains.contract import GameDomain, MetricInfo, PaperFacts, game_attribute, require
 from asp_dist.knobs import Knob, choice
 
 if TYPE_CHECKING:

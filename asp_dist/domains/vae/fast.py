@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 
-from asp_dist.domains.contract import SelfPlayOut
+from asp_dist.core.contract import SelfPlayOut
 from asp_dist.domains.vae.game import paired_error, sample_code, self_play_batch, self_play_out, vae_loss_terms
 from asp_dist.spec import CellSpec
 from asp_dist.training.methods import LossWeights

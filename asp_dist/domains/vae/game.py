@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from asp_dist.core.contract import SelfPlayOut
 from asp_dist.data.mnist import PIXELS, load_mnist
-from asp_dist.domains.contract import SelfPlayOut
 from asp_dist.domains.vae import PAIRED_BLOCK, VAEDomain
 from asp_dist.nn import seeded
 

@@ -65,8 +65,8 @@ from typing import Any, Sequence
 import torch
 import torch.nn.functional as F
 
+from asp_dist.core.contract import Tensors
 from asp_dist.data.mnist import PIXELS
-from asp_dist.domains.contract import Tensors
 from asp_dist.domains.vae.game import VAE, train_images
 from asp_dist.knobs import ANY, BASE_ONLY
 from asp_dist.spec import CellSpec

@@ -21,9 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from asp_dist.domains.contract import SelfPlayOut
+from asp_dist.core.contract import SelfPlayOut
 from asp_dist.nn import seeded
-
 from asp_referential import POOL
 
 if TYPE_CHECKING:

@@ -10,15 +10,14 @@ import math
 
 import pytest
 import torch
+from asp_referential import ReferentialDomain
 
-from asp_dist.domains import DOMAINS, get_domain
-from asp_dist.domains.contract import assert_same_params, check_domain
+from asp_dist.core.contract import assert_same_params, check_domain
+from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.spec import CellSpec
 from asp_dist.training.bases import base_from_bytes, base_to_bytes, train_accepted_base
 from asp_dist.training.cell import run_cell
 from asp_dist.training.row import comparable
-
-from asp_referential import ReferentialDomain
 
 
 def smoke(**changes) -> CellSpec:

@@ -10,7 +10,7 @@ name with another package's domain, is *set aside*: the other domains work as be
 
 from __future__ import annotations
 
-from asp_dist.domains.contract import Domain
+from asp_dist.core.contract import Domain
 from asp_dist.plugins import Registry
 
 GROUP = "asp_dist.domains"
@@ -21,7 +21,7 @@ def declaration_problems(domain: object, name: str) -> list[str]:
     """What is wrong with what a domain declares, checked without running it (the contract checker,
     contract.check_domain, runs it)."""
     if not isinstance(domain, Domain):
-        return [f"it is a {type(domain).__name__}, not an asp_dist.domains.contract.Domain"]
+        return [f"it is a {type(domain).__name__}, not an asp_dist.core.contract.Domain"]
     problems = []
     if domain.name != name:
         problems.append(f"it is registered as {name!r} but its Domain.name is {domain.name!r}")
