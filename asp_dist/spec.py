@@ -24,7 +24,7 @@ from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import UNSET, Range, choice, integers, log_uniform, uniform
-from asp_dist.method_registry import METHODS, get_method
+from asp_dist.method_registry import METHODS, arm_problem, get_method, split_arm
 
 __all__ = ["CellSpec", "SpecError", "stable_hash", "FIELD_NAMES", "FIELD_DOCS", "coerce_field", "field_type"]
 
@@ -53,10 +53,14 @@ class _CommonKnobs:
     # written before domains were plugins leave the domain out. This module names no domain.
     domain: str = knob(None, "Domain, as registered (asp-dist fields lists them).")
     method: str = knob("asp", "Method, as registered: pc (paired only) | osp (self-play + paired) | asp (osp + "
-                              "adversary) | a plugin's (asp_dist.method_registry).")
+                              "adversary) | a plugin's (asp_dist.method_registry); an arm, method@label (osp@default), "
+                              "trains as its method under a name of its own.")
     paired: int = knob(0, "Number of paired (input, output) examples of the base convention, |P|.")
     trial: int = knob(0, "Trial index: selects the base model and all seeds of the cell.")
     root_seed: int = knob(0, "Global seed; every seed of the cell is derived from (root_seed, trial, ...).")
+    common_seeds: bool = knob(False, "Train and eval seeds hash only the base, paired count and method (arm label "
+                                     "dropped), not the other knobs: every setting of a method trains on the same "
+                                     "draws (common random numbers).")
 
     # --- the loss L = w_sp*L_sp + lambda_paired*L_p + lambda_unpaired*L_u ------------------
     # λ0 is tuned where another term weighs against it (alone, Adam makes a loss's scale almost irrelevant)
@@ -185,10 +189,15 @@ class _CommonKnobs:
             if isinstance(self.domain, str) and self.domain in DOMAINS.problems():
                 get_domain(self.domain)  # the set-aside plugin's one line (e.g. which extra to install)
             raise SpecError(f"unknown domain {_short_repr(self.domain)}; choose one of {', '.join(sorted(DOMAINS))}")
-        if self.method not in METHODS:
-            if self.method in METHODS.problems():
-                get_method(self.method)  # the set-aside plugin's one line
-            raise SpecError(f"unknown method {_short_repr(self.method)}; choose one of {', '.join(METHODS)}")
+        problem = arm_problem(self.method)
+        if problem is not None:
+            raise SpecError(problem)
+        method, label = split_arm(self.method)
+        if method not in METHODS:
+            if method in METHODS.problems():
+                get_method(method)  # the set-aside plugin's one line
+            arm = f" (of arm {_short_repr(self.method)})" if label is not None else ""
+            raise SpecError(f"unknown method {_short_repr(method)}{arm}; choose one of {', '.join(METHODS)}")
         for name, allowed in CHOICES.items():
             if getattr(self, name) is not None and getattr(self, name) not in allowed:
                 raise SpecError(f"{name} must be one of {', '.join(allowed)}, got {_short_repr(getattr(self, name))}")
@@ -291,7 +300,8 @@ class _CommonKnobs:
         """Derived seeds. 'base' depends on the base fields only; 'data' (P and U) and 'init'
         (new agents) on (domain, trial, paired) but not the method, so PC/OSP/ASP of one
         block see the same paired set, unpaired set and initial weights (common random numbers).
-        'train' and 'eval' add the method and every knob."""
+        'train' and 'eval' add the method and every knob; with common_seeds only the method, its
+        arm label dropped, so every setting of a method draws the same batches and evaluation."""
         return self._cached(f"seed:{purpose}", lambda spec: spec._seed(purpose))
 
     def _seed(self, purpose: str) -> int:
@@ -300,6 +310,10 @@ class _CommonKnobs:
             material: Any = self.base_fields()
         elif purpose in ("data", "init"):
             material = {"base": self.base_fields(), "paired": spec.paired}
+        elif purpose in ("train", "eval") and spec.common_seeds:
+            # A setting's effect is then measured on the same draws (osp against osp@default, lr against lr).
+            material = {"base": self.base_fields(), "paired": spec.paired, "method": split_arm(spec.method)[0],
+                        "common": True}
         elif purpose in ("train", "eval"):
             # Output-only switches must not change what is trained.
             material = {k: v for k, v in spec.identity_dict().items() if k not in OUTPUT_ONLY_FIELDS}
@@ -321,7 +335,7 @@ COMMON_DEFAULTS: dict[str, Any] = {
 # (Here the common ones; a domain knob's is its Knob.neutral, added below.)
 HASH_NEUTRAL: dict[str, Any] = {
     "lambda_unpaired_schedule": "constant", "lambda_schedule_frac": 0.5, "disc_steps": 1,
-    "base_steps_growth": 1.0,
+    "base_steps_growth": 1.0, "common_seeds": False,
 }
 
 # Fields that change what a cell records, never what it trains or how it is evaluated.

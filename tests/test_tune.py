@@ -102,15 +102,89 @@ def test_asha_is_a_tune_option_and_a_run_without_it_keeps_its_fingerprint(tmp_pa
     plan = plan_of(tmp_path, "budget = 4\nscheduler = 'asha'\ngrace_points = 5\nreduction_factor = 2\n")
     assert (plan.settings.scheduler, plan.settings.grace_points, plan.settings.reduction_factor,
             plan.settings.brackets) == ("asha", 5, 2.0, 1)
-    plain = plan_of(tmp_path, "budget = 4\n")
+    legacy = 'objective = "pooled_median"\ncommon_seeds = false\ntop_k = 0\n'
+    plain = plan_of(tmp_path, "budget = 4\n" + legacy)
     assert plain.settings.scheduler == "none"
-    # Without a scheduler, the settings a run records (and fingerprints) are those of a run made before
-    # schedulers existed: such a run resumes. ASHA's knobs are part of an ASHA run's fingerprint.
+    # Without a scheduler and the validation stage, the settings a run records (and fingerprints) are those of
+    # a run made before either existed: such a run resumes. ASHA's knobs are part of an ASHA run's fingerprint.
     assert plain.settings.record() == {"budget": 4, "search": "tpe", "seed": 0, "metric": "mixed",
                                        "from_defaults": True}
     assert plan.fingerprint() != plain.fingerprint()
     other = plan_of(tmp_path, "budget = 4\nscheduler = 'asha'\ngrace_points = 10\nreduction_factor = 2\n")
     assert other.fingerprint() != plan.fingerprint()
+
+
+def test_a_tune_run_validates_on_trials_of_its_own_with_common_seeds_by_default(tmp_path):
+    """The defaults: stage 2 on the 20 trials after the calibration's (102-121 here), the top 3 of each search and its
+    default, every configuration of a method on the same seeds (the cells' common_seeds knob), and the objective
+    per paired count; each is recorded, so a run with other settings has another fingerprint."""
+    plan = plan_of(tmp_path, "budget = 4\n")
+    settings = plan.settings
+    assert (settings.top_k, settings.objective, settings.common_seeds) == (3, "median_per_paired", True)
+    assert settings.validation_trials == tuple(range(102, 122))
+    search = plan.searches["osp"]
+    assert all(c.common_seeds for c in search.cells + search.validation_cells)
+    assert sorted({c.trial for c in search.validation_cells}) == list(range(102, 122))
+    assert len(search.validation_cells) == 2 * 20 and {c.paired for c in search.validation_cells} == {2, 8}
+    # Two configurations of one method draw the same training and evaluation randomness; other methods do not
+    a, b = search.configuration({"lr": 1e-3, "lambda_paired": 1.0})[0], search.configuration({"lr": 5e-3,
+                                                                                              "lambda_paired": 3.0})[0]
+    assert a.cell_id != b.cell_id and a.seed_for("train") == b.seed_for("train") and a.seed_for("eval") == b.seed_for("eval")
+    assert plan.searches["pc"].cells[0].seed_for("train") != search.cells[0].seed_for("train")
+    assert settings.record()["validation_trials"] == list(range(102, 122))
+    ranged = plan_of(tmp_path, "budget = 4\ntop_k = 2\nvalidation_trials = { first = 500, last = 509 }\n")
+    assert ranged.settings.validation_trials == tuple(range(500, 510)) and ranged.fingerprint() != plan.fingerprint()
+    pooled = plan_of(tmp_path, "budget = 4\nobjective = 'pooled_median'\n")
+    assert pooled.fingerprint() != plan.fingerprint()
+
+
+@pytest.mark.parametrize("table,message", [
+    ("budget = 3\ntop_k = 3\n", "top_k (3) must be below the budget (3)"),
+    ("top_k = -1\n", "top_k is how many search configurations"),
+    ("top_k = 0\nvalidation_trials = 5\n", "validation_trials is a stage-2 setting, which top_k = 0 turns off"),
+    ("validation_trials = 0\n", "validation_trials is a number of trials (>= 1)"),
+    ("validation_trials = { first = 9, last = 3 }\n", "validation_trials is a number of trials"),
+    ("validation_trials = 950\n", "validation trials must lie in 100-999 (1000 and up are confirmatory); they reach "
+                                   "1000, 1001"),
+    ("validation_trials = { first = 101, last = 120 }\n", "validation trials 101 are calibration trials too"),
+    ("objective = 'mean'\n", "objective must be one of median_per_paired, pooled_median"),
+    ("common_seeds = 1\n", "common_seeds must be true or false"),
+])
+def test_bad_validation_settings_are_refused_in_one_line(tmp_path, table, message):
+    with pytest.raises(SweepError, match=re.escape(message)):
+        plan_of(tmp_path, table)
+
+
+@pytest.mark.parametrize("values,rule,expected", [
+    ([(2, 1.0), (2, 3.0), (2, 5.0), (4, 10.0)], "median_per_paired", (3.0 + 10.0) / 2),
+    ([(2, 1.0), (2, 3.0), (2, 5.0), (4, 10.0)], "pooled_median", 4.0),
+    # a count where every cell failed: the configuration is not judged on the other counts alone
+    ([(2, 1.0), (4, None), (4, float("nan"))], "median_per_paired", float("nan")),
+    ([(2, 1.0), (4, None)], "pooled_median", 1.0),
+    ([(2, None)], "pooled_median", float("nan")),
+])
+def test_a_configurations_objective_sees_every_paired_count(values, rule, expected):
+    """A setting that collapses at one paired count cannot win on the pooled median of the others."""
+    from asp_dist.sweep.tune_plan import configuration_objective
+
+    got = configuration_objective(values, rule)
+    assert (got != got and expected != expected) or got == pytest.approx(expected)
+
+
+def test_the_candidates_are_the_default_then_the_best_others_and_stage_two_ties_go_to_the_default(tmp_path):
+    from asp_dist.sweep.tune_validation import candidates
+
+    plan = plan_of(tmp_path, "budget = 6\ntop_k = 2\n")
+    default = plan.searches["pc"].default_values()["lr"]
+    rows = pd.DataFrame({"method": "pc", "configuration": range(6),
+                         "knob_lr": [default, 2e-3, 3e-3, 2e-3, 5e-3, 6e-3],
+                         "objective": [0.9, 0.5, 0.7, 0.95, float("nan"), 0.8],
+                         "default": [True, False, False, False, False, False]})
+    chosen = candidates(plan, pd.concat([rows, rows.assign(method="osp", knob_lambda_paired=1.0,
+                                                           default=False)]))["pc"]
+    # the default first (the search's best, 3, is not the default); 1 repeats 3's values; 4 has no objective
+    assert [(c.configuration, c.default) for c in chosen] == [(0, True), (3, False), (5, False)]
+    assert [c.search_objective for c in chosen] == [0.9, 0.95, 0.8]
 
 
 def test_tuning_happens_on_calibration_trials_only(tmp_path):
@@ -120,6 +194,8 @@ def test_tuning_happens_on_calibration_trials_only(tmp_path):
         plan_of(tmp_path, "budget = 2", GRID.replace('domain = ["signaling"]', 'domain = ["signaling", "levers"]'))
     with pytest.raises(SweepError, match="it has no \\[tune\\] table"):
         TunePlan.from_space(space(tmp_path, GRID))
+    with pytest.raises(SweepError, match=r"a tune run searches methods, not arms \(osp@default\)"):
+        plan_of(tmp_path, "budget = 2", GRID.replace('"osp", "asp"', '"osp", "osp@default", "asp"'))
 
 
 def test_the_cli_refuses_a_bad_tune_space_in_one_line_and_writes_nothing(tmp_path):
@@ -240,7 +316,7 @@ def test_a_configuration_reports_the_median_probe_once_every_cell_has_closed_a_c
     from asp_dist.sweep.tuning import CurveObjective
 
     reports = []
-    curve = CurveObjective(["a", "b", "c"], "probe_mixed", reports.append)
+    curve = CurveObjective({"a": 2, "b": 2, "c": 2}, "probe_mixed", reports.append)
     cell = {c: SimpleNamespace(cell_id=c) for c in "abcz"}
     point = lambda v=None: {"step": 1.0} if v is None else {"step": 1.0, "probe_mixed": v}
     curve.seed("c", [None, 0.9, 0.5])  # a cell with a row: its stored curve
@@ -256,6 +332,11 @@ def test_a_configuration_reports_the_median_probe_once_every_cell_has_closed_a_c
     assert len(reports) == 2
     curve([(cell["a"], [point(float("nan"))]), (cell["b"], [point(float("nan"))])])
     assert len(reports) == 2 and curve.reported == 4  # no finite value at point 4: nothing to report
+    # By paired count: a curve point's objective is the mean of each count's median, as a finished one's is
+    by_count = []
+    curve = CurveObjective({"a": 2, "b": 2, "c": 4}, "probe_mixed", by_count.append, "median_per_paired")
+    curve([(cell["a"], [point(0.2)]), (cell["b"], [point(0.4)]), (cell["c"], [point(1.0)])])
+    assert by_count == [{"objective": pytest.approx((0.3 + 1.0) / 2), "curve_point": 1}]
 
 
 def test_asha_sees_only_curve_point_results_and_never_stops_a_configuration_at_its_last_point(tmp_path):
@@ -297,6 +378,7 @@ seed = 0
 scheduler = "asha"
 grace_points = 1
 reduction_factor = 2
+top_k = 0  # the search alone: stage 2 is the tune-smoke run's
 [tune.ranges]
 lr = { log_uniform = [1e-5, 1e-1] }
 """
@@ -365,8 +447,9 @@ def test_the_tuning_section_counts_the_configurations_asha_stopped_and_never_nam
 @pytest.mark.slow
 def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_path):
     """SIGKILL the tune run once some cells have rows, run it again: every method ends with exactly its budget
-    of configurations, each configuration's cells have one row each, rows written before the kill are never
-    rewritten, and the report names each method's best configuration as space settings. Tune's own state is
+    of configurations and then its default and best configuration validated on trials of their own, each
+    configuration's cells have one row each, rows written before the kill are never rewritten, tuned.toml holds
+    each method's validation winner as space settings, and a third run trains nothing. Tune's own state is
     never unpickled on the way: pickles planted where Tune keeps it (tuner.pkl, a searcher's state), which
     Tuner.restore would load, run nothing."""
     results, ray_temp = tmp_path / "runs", f"/tmp/asp-tk-{os.getpid()}"  # Ray's socket paths are short
@@ -391,16 +474,30 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     assert not (tmp_path / "ran").exists(), "resuming the tune run unpickled a file planted in Tune's state"
     assert {f: f.stat().st_mtime_ns for f in before} == before, "a row written before the kill was rewritten"
     table = pd.read_parquet(sweep_dir / "configurations.parquet")
-    assert table.groupby("method").size().to_dict() == {"asp": 3, "osp": 3, "pc": 3}
-    assert table["objective"].notna().all() and (table["cells_done"] == 4).all()
+    search, validation = table[table["stage"] == "search"], table[table["stage"] == "validation"]
+    assert search.groupby("method").size().to_dict() == {"asp": 3, "osp": 3, "pc": 3}
+    assert table["objective"].notna().all() and (search["cells_done"] == 4).all()
+    # Stage 2: each method's default and its search's best other configuration, on trials 102-103 only
+    assert validation.groupby("method").size().to_dict() == {"asp": 2, "osp": 2, "pc": 2}
+    assert (validation["cells_done"] == 4).all() and validation.groupby("method")["default"].sum().eq(1).all()
     cells = [cid for ids in table["cell_ids"] for cid in ids.split(",")]
+    trials = {stage: {int(re.search(r"-t(\d+)-", c).group(1)) for ids in rows["cell_ids"] for c in ids.split(",")}
+              for stage, rows in table.groupby("stage")}
+    assert trials == {"search": {100, 101}, "validation": {102, 103}}
     rows = {f.stem for f in parquet_files(sweep_dir)}
-    assert len(cells) == len(set(cells)) == 36 and rows == set(cells), "a cell outside the configurations, or twice"
+    # a search configuration with the default's values trains the same cells as the search's configuration 0
+    assert len(set(cells)) == 36 + 24 and rows == set(cells), "a cell outside the configurations"
+    assert len(search["cell_ids"].str.split(",").explode()) == 36, "a search cell twice"
+    # tuned.toml holds each method's validation winner, the configuration marked chosen
     tuned = tomllib.loads((sweep_dir / "tuned.toml").read_text())["methods"]
     assert set(tuned) == {"pc", "osp", "asp"} and set(tuned["asp"]) == {"lr", "lambda_unpaired"}
-    best = table.loc[table[table["method"] == "pc"]["objective"].idxmax()]
-    assert tuned["pc"]["lr"] == pytest.approx(best["knob_lr"])
-    assert "best configuration" in again.stderr
+    for method, mine in validation.groupby("method"):
+        best = mine.loc[mine["objective"].idxmax()]  # the signaling game: higher is better
+        assert bool(best["chosen"]) and mine["chosen"].sum() == 1
+        assert tuned[method]["lr"] == pytest.approx(best["knob_lr"])
+    assert not search["chosen"].any()
+    assert "chosen on validation trials 102-103" in (sweep_dir / "tuned.toml").read_text()
+    assert "won validation" in again.stderr
     status = cli("status", "tune-smoke", "--results", str(results), timeout=60)
     assert status.returncode == 2 and "is a tune run (asp-dist tune), not a sweep" in status.stderr
     # The stats job reads a tune run as a sweep, with a tuning section
@@ -412,6 +509,10 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     path = space(tmp_path, f'settings = ["{sweep_dir / "tuned.toml"}"]\n'
                  + GRID.replace("first = 100, last = 101", "first = 1000, last = 1000"), "confirm.toml")
     assert [c.lr for c in expand(path) if c.method == "pc"] == [pytest.approx(tuned["pc"]["lr"])] * 2
+    # Run once more: both stages done, nothing trained, the same table
+    last = cli(*args, timeout=300)
+    assert last.returncode == 0 and "configurations, last" not in last.stderr, last.stderr[-2000:]
+    pd.testing.assert_frame_equal(pd.read_parquet(sweep_dir / "configurations.parquet"), table)
 
 
 @pytest.mark.parametrize("higher", [True, False])

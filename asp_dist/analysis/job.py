@@ -19,6 +19,7 @@ from asp_dist.analysis.tables import (
     StatsConfig,
     by_paired_table,
     claim_2n_table,
+    default_vs_tuned_table,
     efficiency_table,
     knob_trends,
     rank_tests,
@@ -28,7 +29,8 @@ from asp_dist.analysis.tables import (
 from asp_dist.errors import SpecError
 from asp_dist.results.query import Inputs, load_rows, open_inputs
 
-RANK_TABLES = ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "knob_trend")
+RANK_TABLES = ("summary", "tests", "pairwise", "by_paired", "efficiency", "claim_2n", "knob_trend",
+               "default_vs_tuned")
 TABLES = RANK_TABLES + ("missing",) + RLIABLE_TABLES
 
 
@@ -83,6 +85,7 @@ def compute(rows: pd.DataFrame, cfg: StatsConfig | None = None, inputs: Inputs |
         parts["efficiency"].append(pd.DataFrame(efficiency_table(summary, threshold, cfg, layout)))
         parts["claim_2n"].append(pd.DataFrame(claim_2n_table(g, cfg, layout)))
         parts["knob_trend"].append(pd.DataFrame(knob_trends(g, cfg, layout)))
+        parts["default_vs_tuned"].append(pd.DataFrame(default_vs_tuned_table(g, cfg, layout)))
     all_rows = pd.concat(labelled, ignore_index=True)
     tables = {name: _concat(dfs) for name, dfs in parts.items()}
     tables["missing"], more, grid_known = completeness(all_rows, inputs, layouts)

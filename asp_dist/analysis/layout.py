@@ -9,6 +9,8 @@
   base model, the paired and unpaired sets and the initial weights, so comparisons are paired
   over blocks.
 - *score*: the metric oriented so that larger is better (negated when the rows say lower is better).
+- *arm*: a method named ``<method>@<label>`` (asp_dist.method_registry) is a treatment of its own; the
+  ``@default`` arm is its method's *companion*, compared with it alone (tables.default_vs_tuned_table).
 
 The knob rule and the label format live in asp_dist.results.grouping, which the trackers share (their run
 paths name the same conditions and treatments). This module reads rows: which columns are knobs
@@ -24,6 +26,8 @@ from typing import Any, Iterator, Sequence
 import pandas as pd
 
 from asp_dist.errors import SpecError
+from asp_dist.method_registry import is_companion as _is_companion_method
+from asp_dist.method_registry import split_arm
 from asp_dist.results.grouping import NOT_KNOBS, condition_label, split_knobs, treatment_label
 from asp_dist.results.grouping import fmt_value as fmt_value  # re-exported: the analysis's tables format with it
 from asp_dist.spec import FIELD_NAMES
@@ -99,10 +103,28 @@ def label_rows(rows: pd.DataFrame, layout: DomainLayout, metric: str) -> pd.Data
     return rows
 
 
+def method_of(treatment: str) -> str:
+    """The method (an arm's full name) of a treatment label: ``osp@default[lr=0.01]`` -> ``osp@default``."""
+    return treatment.split("[")[0]
+
+
+def base_method(treatment: str) -> str:
+    """The registered method of a treatment, arm label dropped: ``osp@default[lr=0.01]`` -> ``osp``."""
+    return split_arm(method_of(treatment))[0]
+
+
+def is_companion(treatment: str) -> bool:
+    """Whether a treatment is of a method's ``@default`` arm (left out of the main tests)."""
+    return _is_companion_method(method_of(treatment))
+
+
 def treatment_order(names: Sequence[str]) -> list[str]:
+    """The paper's methods first, each followed by its arms (``osp``, ``osp[...]``, ``osp@default``), then
+    the others by name."""
     def key(t: str) -> tuple:
-        m = t.split("[")[0]
-        return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), t)
+        m, label = split_arm(method_of(t))
+        return (METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER), m, label is not None,
+                label or "", t)
 
     return sorted(set(names), key=key)
 
@@ -126,4 +148,5 @@ def by_condition(rows: pd.DataFrame) -> Iterator[tuple[str, pd.DataFrame]]:
 
 
 def is_asp(treatment: str) -> bool:
-    return treatment.split("[")[0] == "asp"
+    """ASP or an arm of it (an arm trains as its method)."""
+    return base_method(treatment) == "asp"

@@ -4,6 +4,10 @@ Differences are paired over blocks. In `pairwise`, `by_paired` and `knob_trend` 
 metric units, a − b (so negative means a is better when lower is better; `better` says who won).
 In `claim_2n` they are ASP's *gain* instead, positive = ASP better for either metric direction,
 so that the verdict and the interval beside it always agree in sign.
+
+A method's ``@default`` arm (its *companion*, layout.is_companion) is left out of the main tests (rank
+tests, by_paired, claim_2n, knob trends), which compare the methods as the paper does; `default_vs_tuned`
+compares each companion with its method alone.
 """
 
 from __future__ import annotations
@@ -16,7 +20,16 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from asp_dist.analysis.layout import DomainLayout, by_condition, condition_key, fmt_value, is_asp, treatment_order
+from asp_dist.analysis.layout import (
+    DomainLayout,
+    base_method,
+    by_condition,
+    condition_key,
+    fmt_value,
+    is_asp,
+    is_companion,
+    treatment_order,
+)
 from asp_dist.analysis.paper import paper_paired_ranges, paper_threshold
 from asp_dist.analysis.rank_tests import (
     bootstrap_median_ci,
@@ -69,6 +82,11 @@ def summary_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) ->
 
 # ---- rank tests ------------------------------------------------------------------------------------
 
+def main_rows(rows: pd.DataFrame) -> pd.DataFrame:
+    """The rows of the main tests: every treatment but the companions (``osp@default``)."""
+    return rows[~rows["treatment"].map(is_companion)] if len(rows) else rows
+
+
 def paired_range_for(domain: str, cfg: StatsConfig, available: Sequence[int]) -> tuple[int, int]:
     rng = cfg.paired_ranges.get(domain)
     if rng is None:
@@ -108,7 +126,7 @@ def rank_tests(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> tu
     """Friedman (or the two-treatment Wilcoxon) per condition over the paired range, with post-hocs."""
     omnibus, pairwise = [], []
     sign = 1.0 if layout.higher_is_better else -1.0
-    for cond, g in by_condition(rows):
+    for cond, g in by_condition(main_rows(rows)):
         lo, hi = paired_range_for(layout.domain, cfg, g["paired"].unique())
         in_range = g[(g["paired"] >= lo) & (g["paired"] <= hi)]
         treatments = treatment_order(in_range["treatment"])
@@ -172,7 +190,7 @@ def by_paired_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) 
     """ASP against each other treatment at every paired count (where does ASP help?), Holm per condition."""
     out = []
     sign = 1.0 if layout.higher_is_better else -1.0
-    for cond, g in by_condition(rows):
+    for cond, g in by_condition(main_rows(rows)):
         treatments = treatment_order(g["treatment"])
         asps = [t for t in treatments if is_asp(t)]
         pairs = ([(a, b) for a in asps for b in treatments if not is_asp(b)] if asps
@@ -245,7 +263,7 @@ def claim_2n_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -
     higher = layout.higher_is_better
     sign = 1.0 if higher else -1.0
     out = []
-    for cond, g in by_condition(rows):
+    for cond, g in by_condition(main_rows(rows)):
         treatments = treatment_order(g["treatment"])
         for a in (t for t in treatments if is_asp(t)):
             for b in (t for t in treatments if not is_asp(t)):
@@ -281,6 +299,7 @@ def knob_trends(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> l
     and the per-block difference ASP − other (all paired counts), per value of the other knobs."""
     out = []
     sign = 1.0 if layout.higher_is_better else -1.0
+    rows = main_rows(rows)
     for knob in layout.shared_knobs:
         values = pd.to_numeric(rows[knob], errors="coerce")
         if values.isna().any() or values.nunique() < 3:
@@ -308,4 +327,33 @@ def knob_trends(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> l
                                 "median_diff_at_min": sign * float(np.median(diff[x == lo_v])),
                                 "median_diff_at_max": sign * float(np.median(diff[x == hi_v])),
                                 "knob_min": float(lo_v), "knob_max": float(hi_v)})
+    return out
+
+
+# ---- a method against its @default arm ---------------------------------------------------------------
+
+def default_vs_tuned_table(rows: pd.DataFrame, cfg: StatsConfig, layout: DomainLayout) -> list[dict]:
+    """Each companion (``osp@default``) against every other treatment of its method (``osp``, ``osp[...]``,
+    ``osp@tuned``) per condition, over the paired range's complete blocks. median_diff is tuned − default
+    in score units (> 0: tuned better, whichever way the metric points); p is the two-sided Wilcoxon
+    signed-rank test, uncorrected: each method's question is its own."""
+    out = []
+    for cond, g in by_condition(rows):
+        lo, hi = paired_range_for(layout.domain, cfg, g["paired"].unique())
+        in_range = g[(g["paired"] >= lo) & (g["paired"] <= hi)]
+        treatments = treatment_order(in_range["treatment"])
+        for default in (t for t in treatments if is_companion(t)):
+            method = base_method(default)
+            for tuned in (t for t in treatments if base_method(t) == method and not is_companion(t)):
+                wide = block_matrix(in_range, [tuned, default])
+                ps = pair_stats(wide, tuned, default, layout.higher_is_better)
+                p = ps["p_wilcoxon"]
+                out.append({"domain": layout.domain, "condition": cond, "method": method, "tuned": tuned,
+                            "default": default, "metric": cfg.metric, "higher_is_better": layout.higher_is_better,
+                            "paired_range": f"{lo}-{hi}", "n_blocks": ps["n_blocks"],
+                            "tuned_better": ps["wins_a"], "tuned_worse": ps["wins_b"], "ties": ps["ties"],
+                            "median_tuned": ps["median_a"], "median_default": ps["median_b"],
+                            "median_diff": ps["median_diff"], "p_wilcoxon": p,
+                            "better": better_of(tuned, default, ps["wins_a"], ps["wins_b"], ps["median_diff"]),
+                            "significant": bool(p < cfg.alpha) if not np.isnan(p) else False})
     return out

@@ -96,7 +96,7 @@ def write_single_row(row: dict[str, Any], out: Path) -> None:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("cell", help="run one training cell and print its result row as JSON")
     p.add_argument("--domain", required=True)
-    p.add_argument("--method", required=True, help="pc | osp | asp")
+    p.add_argument("--method", required=True, help="pc | osp | asp (or a plugin's), or an arm of one: osp@default")
     p.add_argument("--paired", type=int, required=True, help="number of paired examples")
     p.add_argument("--trial", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

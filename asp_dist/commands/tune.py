@@ -44,7 +44,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     check_data([c for s in plan.searches.values() for c in s.cells])
     with signals.sigterm_as_interrupt():
         try:
-            from asp_dist.sweep.tuning import run_tune
+            from asp_dist.sweep.tune_run import run_tune
 
             result = run_tune(plan, results=args.results, workers=args.workers, ray_temp_dir=args.ray_temp_dir,
                               checkpoint_every_s=args.checkpoint_every, max_failures=args.max_failures)

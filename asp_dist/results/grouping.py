@@ -3,7 +3,8 @@ result rows (asp_dist.analysis.layout) and the trackers on the plan's specs (asp
 a tracker's run path names the condition and treatment the report shows.
 
 - *knob*: a CellSpec field outside NOT_KNOBS (the identity, and switches that change no result).
-- *shared knob*: varied within every method of the domain. Its values make the *condition*
+- *shared knob*: varied within every method of the domain, companion arms (``osp@default``) aside: a
+  companion may run at fewer settings than its method. Its values make the *condition*
   (``vae_latent_dim=8``, several joined by ", "), or "all" when the domain has no shared knob.
 - *method knob*: varied within some methods only. It splits a method into *treatments*
   (``asp[lambda_unpaired=0.5]``).
@@ -18,6 +19,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
+
+from asp_dist.method_registry import is_companion
 
 IDENTITY = ("domain", "method", "paired", "trial", "root_seed")
 NOT_KNOBS = frozenset(IDENTITY) | {"record_figure_data"}
@@ -43,11 +46,12 @@ def split_knobs(methods: Sequence[str], knobs: Sequence[str], varies: Callable[[
     knob takes more than one value among the method's rows. A knob no method varies is neither."""
     shared: list[str] = []
     method_only: dict[str, list[str]] = {m: [] for m in methods}
+    main = [m for m in methods if not is_companion(m)] or list(methods)
     for knob in knobs:
         varied_in = [m for m in methods if varies(knob, m)]
         if not varied_in:
             continue
-        if len(varied_in) == len(methods):
+        if all(m in varied_in for m in main):
             shared.append(knob)
         else:
             for m in varied_in:

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Iterator
 from asp_dist import __version__
 from asp_dist.core.registry import DOMAINS
 from asp_dist.errors import SpecError, SweepError
-from asp_dist.method_registry import METHODS
+from asp_dist.method_registry import METHODS, split_arm
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, as_path, is_remote
 from asp_dist.results.s3 import S3Path, check_bucket
@@ -238,8 +238,10 @@ def domain_plugins(names: list[str]) -> dict[str, dict[str, str]]:
 
 
 def method_plugins(names: list[str]) -> dict[str, dict[str, str]]:
-    """method -> {entry_point, distribution, version} of the plugin that provides it (asp_dist.method_registry)."""
-    return _provenance(METHODS, names)
+    """method -> {entry_point, distribution, version} of the plugin that provides it (asp_dist.method_registry); an
+    arm (`osp@default`) is provided by its method's plugin."""
+    plugins = _provenance(METHODS, sorted({split_arm(n)[0] for n in names}))
+    return {n: plugins[split_arm(n)[0]] for n in names if split_arm(n)[0] in plugins}
 
 
 def _provenance(registry, names: list[str]) -> dict[str, dict[str, str]]:

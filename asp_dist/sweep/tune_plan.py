@@ -14,19 +14,36 @@ and a [tune] table::
     grace_points = 10        # asha: no configuration is stopped before this curve point (of ~50 per cell)
     reduction_factor = 3     # asha: rungs at grace_points · reduction_factor^k; past one go on only the best 1/3
     brackets = 1             # asha: its brackets (more than 1: which bracket a configuration gets is random)
+    objective = "median_per_paired"  # a configuration's objective from its cells: the mean over paired counts of
+                             #   each count's median (a setting that collapses at one count cannot win on the
+                             #   others) | "pooled_median": the median over all its cells (runs before 2026-12-06)
+    common_seeds = true      # every configuration of a method trains its cells with the same training and
+                             #   evaluation seeds (the cells' common_seeds knob): configurations differ only in
+                             #   their values, not in their draws (common random numbers)
+    top_k = 3                # stage 2: each method's top_k search configurations and its default trained again on
+                             #   the validation trials and chosen there (0: no stage 2, the search's best is chosen;
+                             #   unset: 3, or budget - 1 where the budget is smaller)
+    validation_trials = 20   # stage 2's trials: a count (the ids right after the calibration trials) or
+                             #   { first = 400, last = 419 }; below 1000 and apart from the calibration trials
     [tune.ranges]            # optional: narrow, widen or add a knob's range (asp_dist.knobs.Range)
     lr = { log_uniform = [3e-4, 3e-3] }
     [tune.knobs]             # optional: the knobs searched for a method (default: every knob with a range
     pc = ["lr"]              #   whose `needs` the method meets)
 
 A configuration of a method is one value per searched knob. Its cells are the grid's cells of that method with
-those values; its objective is the median of the metric over them (the method's own cells only: a method's
-search never looks at another method's rows).
+those values; its objective aggregates the metric over them (`objective`; the method's own cells only: a
+method's search never looks at another method's rows).
+
+Two stages (docs/decisions/0058-tuning-chooses-on-validation-trials.md). Stage 1, the *search*, tries `budget`
+configurations per method on the calibration trials. Stage 2, the *validation*, trains each method's default and
+its `top_k` best search configurations (other than the default) on validation trials the search never saw, and
+the method's tuned setting is the best there (ties to the default): the search's winner on a few trials is partly
+its luck on their bases and seeds, and a default that no searched setting beats on fresh trials stays.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from asp_dist.core.registry import DOMAINS, get_domain
@@ -40,8 +57,13 @@ from asp_dist.sweep.spaces import expand, read_space_toml, space_file
 SEARCHES = ("tpe", "random")
 SCHEDULERS = ("none", "asha")
 ASHA_KEYS = ("grace_points", "reduction_factor", "brackets")
-TUNE_KEYS = {"budget", "search", "seed", "metric", "from_defaults", "scheduler", *ASHA_KEYS, "ranges", "knobs"}
+OBJECTIVES = ("median_per_paired", "pooled_median")
+TUNE_KEYS = {"budget", "search", "seed", "metric", "from_defaults", "scheduler", *ASHA_KEYS, "objective", "common_seeds",
+             "top_k", "validation_trials", "ranges", "knobs"}
 CALIBRATION_TRIALS = range(100, 1000)  # 1000 and up: confirmatory trials, never tuned on
+# What a tune run did before the validation stage, common seeds and the per-paired objective (2026-12-06): a
+# space that sets these runs as it did then, and its settings are recorded (and fingerprinted) as they were.
+LEGACY = {"objective": "pooled_median", "common_seeds": False, "top_k": 0}
 
 
 @dataclass(frozen=True)
@@ -55,14 +77,26 @@ class TuneSettings:
     grace_points: int = 10
     reduction_factor: float = 3.0
     brackets: int = 1
+    objective: str = "median_per_paired"
+    common_seeds: bool = True
+    top_k: int = 3
+    validation_trials: tuple[int, ...] = ()  # set by the plan: the ids stage 2 trains on (none when top_k is 0)
 
     def record(self) -> dict[str, Any]:
         """The settings as a tune run records and fingerprints them: without a scheduler, the settings of a run
-        made before schedulers existed (so that it resumes), with ASHA its knobs too."""
+        made before schedulers existed, and without the validation stage's settings where they are LEGACY's,
+        those of a run made before it (so that such runs resume); otherwise every setting."""
         settings = dict(vars(self))
         if self.scheduler == "none":
             for key in ("scheduler", *ASHA_KEYS):
                 del settings[key]
+        for key, value in LEGACY.items():
+            if settings[key] == value:
+                del settings[key]
+        if not self.top_k:
+            del settings["validation_trials"]
+        else:
+            settings["validation_trials"] = list(self.validation_trials)
         return settings
 
 
@@ -78,10 +112,15 @@ class MethodSearch:
         """The method's cells with `values` (one per searched knob), resolved."""
         return [cell.replace(**values).resolved() for cell in self.cells]
 
+    validation_cells: list[CellSpec] = field(default_factory=list)  # stage 2's: the cells on the validation trials
+
+    def default_values(self) -> dict[str, Any]:
+        """The searched knobs' values in the method's cells: the configuration it runs untuned."""
+        return {k: getattr(self.cells[0], k) for k in self.ranges}
+
     def defaults(self) -> dict[str, Any] | None:
-        """The searched knobs' values in the method's cells (the configuration it runs untuned), or None where
-        one lies outside its range."""
-        values = {k: getattr(self.cells[0], k) for k in self.ranges}
+        """The default values where every one lies inside its range (the search may start from them), else None."""
+        values = self.default_values()
         return values if all(self.ranges[k].contains(v) for k, v in values.items()) else None
 
 
@@ -139,11 +178,19 @@ class TunePlan:
         if confirmatory:
             raise SweepError(f"{label}: tune on calibration trials ({CALIBRATION_TRIALS.start}-"
                              f"{CALIBRATION_TRIALS.stop - 1}); its grid has trial(s) {_ids(confirmatory)}")
+        if settings.common_seeds:  # the cells' own knob: their ids and seeds say that they share draws
+            cells = [c.replace(common_seeds=True).resolved() for c in cells]
+        if settings.top_k:
+            settings = replace(settings, validation_trials=_validation_trials(table, cells, label))
         ranges = _ranges(table.get("ranges", {}), cells[0], label)
         chosen = table.get("knobs", {})
         if not isinstance(chosen, dict):
             raise SweepError(f"{label}: [tune.knobs] maps a method to a list of knobs, got {chosen!r}")
         present = {c.method for c in cells}
+        arms = sorted(m for m in present if "@" in m)
+        if arms:
+            raise SweepError(f"{label}: a tune run searches methods, not arms ({', '.join(arms)}): its stage 2 already "
+                             f"trains each method's default beside its best")
         methods = [m for m in method_order() if m in present]  # the registry's order: pc, osp, asp, plugins
         odd = sorted(set(chosen) - set(methods))
         if odd:
@@ -156,13 +203,48 @@ class TunePlan:
             if varied:
                 raise SweepError(f"{label}: {', '.join(varied)} varies across {method}'s cells (a grid axis) and is "
                                  f"searched too; keep one")
-            searches[method] = MethodSearch(method, own, mine)
+            searches[method] = MethodSearch(method, own, mine, _on_trials(mine, settings.validation_trials))
         return cls(name, space, domain.name, settings, searches, domain.metrics[settings.metric].higher_is_better,
                    text)
 
 
 def _ids(trials: list[int]) -> str:
     return ", ".join(map(str, trials[:5])) + (f" … ({len(trials)} in all)" if len(trials) > 5 else "")
+
+
+def _on_trials(cells: list[CellSpec], trials: tuple[int, ...]) -> list[CellSpec]:
+    """The cells of `cells`' grid (every other knob as it is) on `trials` instead: stage 2's cells."""
+    out: dict[str, CellSpec] = {}
+    for cell in cells:
+        for trial in trials:
+            moved = cell.replace(trial=trial).resolved()
+            out.setdefault(moved.cell_id, moved)
+    return list(out.values())
+
+
+def _validation_trials(table: dict[str, Any], cells: list[CellSpec], label: str) -> tuple[int, ...]:
+    """Stage 2's trial ids: `validation_trials` as a count (the ids right after the calibration trials) or a
+    {first, last} range; below 1000 and none of them a calibration trial."""
+    raw = table.get("validation_trials", 20)
+    calibration = sorted({c.trial for c in cells})
+    if isinstance(raw, int) and not isinstance(raw, bool) and raw >= 1:
+        ids = tuple(range(calibration[-1] + 1, calibration[-1] + 1 + raw))
+    elif (isinstance(raw, dict) and set(raw) == {"first", "last"}
+          and all(isinstance(v, int) and not isinstance(v, bool) for v in raw.values()) and raw["first"] <= raw["last"]):
+        ids = tuple(range(raw["first"], raw["last"] + 1))
+    else:
+        raise SweepError(f"{label}: validation_trials is a number of trials (>= 1) or {{ first = A, last = B }} with "
+                         f"A <= B; got {raw!r}")
+    outside = [t for t in ids if t not in CALIBRATION_TRIALS]
+    if outside:
+        raise SweepError(f"{label}: validation trials must lie in {CALIBRATION_TRIALS.start}-"
+                         f"{CALIBRATION_TRIALS.stop - 1} (1000 and up are confirmatory); they reach {_ids(outside)}"
+                         f"{'; give them as { first = A, last = B }' if isinstance(raw, int) else ''}")
+    shared = sorted(set(ids) & set(calibration))
+    if shared:
+        raise SweepError(f"{label}: validation trials {_ids(shared)} are calibration trials too; stage 2 must judge "
+                         f"on trials the search did not see")
+    return ids
 
 
 def _settings(table: dict[str, Any], label: str) -> TuneSettings:
@@ -194,8 +276,23 @@ def _settings(table: dict[str, Any], label: str) -> TuneSettings:
     factor = asha["reduction_factor"]
     if not isinstance(factor, (int, float)) or isinstance(factor, bool) or not factor > 1 or factor == float("inf"):
         raise SweepError(f"{label}: reduction_factor must be a number above 1, got {factor!r}")
+    objective = table.get("objective", defaults.objective)
+    if objective not in OBJECTIVES:
+        raise SweepError(f"{label}: objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
+    common_seeds = table.get("common_seeds", defaults.common_seeds)
+    if not isinstance(common_seeds, bool):
+        raise SweepError(f"{label}: common_seeds must be true or false, got {common_seeds!r}")
+    top_k = table.get("top_k", min(defaults.top_k, budget - 1))  # by default, as many as a small budget has
+    if not isinstance(top_k, int) or isinstance(top_k, bool) or top_k < 0:
+        raise SweepError(f"{label}: top_k is how many search configurations per method stage 2 validates, an "
+                         f"integer >= 0 (0: no validation stage); got {top_k!r}")
+    if top_k >= budget:
+        raise SweepError(f"{label}: top_k ({top_k}) must be below the budget ({budget}): stage 2 validates the "
+                         f"best few of a method's search, not all of it")
+    if "validation_trials" in table and not top_k:
+        raise SweepError(f"{label}: validation_trials is a stage-2 setting, which top_k = 0 turns off")
     return TuneSettings(budget, search, seed, metric, from_defaults, scheduler, asha["grace_points"], float(factor),
-                        asha["brackets"])
+                        asha["brackets"], objective, common_seeds, top_k)
 
 
 def curve_points(train_steps: int) -> int:
@@ -267,6 +364,26 @@ def _method_ranges(method: str, ranges: dict[str, Range], chosen: Any, label: st
         raise SweepError(f"{label}: method {method} has nothing to tune (no knob with a range applies to it); "
                          f"declare one in [tune.ranges] or name its knobs in [tune.knobs]")
     return own
+
+
+def configuration_objective(values: list[tuple[int, float]], rule: str) -> float:
+    """A configuration's objective from its cells' (paired count, metric value) pairs, finite values only; NaN
+    when there is none. median_per_paired: the mean over paired counts of each count's median, and NaN when a
+    count the configuration trained has no value at all (every cell there failed: it is not judged on the rest);
+    pooled_median: the median over every cell. Direction-free: the searcher is told the direction."""
+    import math
+    import statistics
+
+    finite = [(p, v) for p, v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return float("nan")
+    if rule == "pooled_median":
+        return statistics.median(v for _, v in finite)
+    counts = {p for p, _ in values}
+    per_count = {p: [v for q, v in finite if q == p] for p in counts}
+    if any(not vs for vs in per_count.values()):
+        return float("nan")
+    return statistics.fmean(statistics.median(vs) for vs in per_count.values())
 
 
 def winning_configuration(configurations, higher_is_better: bool):

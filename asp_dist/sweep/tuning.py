@@ -1,11 +1,13 @@
-"""`asp-dist tune`: each method of a tune space searched with a Ray Tune search algorithm, on one budget.
+"""`asp-dist tune`, stage 1: each method of a tune space searched with a Ray Tune search algorithm, on one budget.
 
-For every method of the plan (asp_dist.sweep.tune_plan), in the space's order, one Tune experiment of
+(Stage 2, the validation of each method's best configurations, is asp_dist.sweep.tune_validation; the driver that
+runs both and writes configurations.parquet and tuned.toml is asp_dist.sweep.tune_run.) For every method of the plan (asp_dist.sweep.tune_plan), in the space's order, one Tune experiment of
 `budget` trials. A trial is one configuration (a value per searched knob): it trains the method's
 calibration cells with those values — as one pack where the domain packs cells in sweeps (particles,
 levers), else cell after cell — through the sweep's own unit function (asp_dist.sweep.trial.train_unit:
-shared bases, checkpoints, rows and curves in the store, failures recorded), then reports its objective,
-the median of the domain's metric over its cells (the rows in the store are the truth it is read from).
+shared bases, checkpoints, rows and curves in the store, failures recorded), then reports its objective, the
+domain's metric over its cells by the run's rule (tune_plan.configuration_objective; the rows in the store are
+the truth it is read from).
 
 The search: Optuna's TPE (ray.tune.search.optuna.OptunaSearch, seeded) by default, Tune's random search
 (BasicVariantGenerator, seeded) as the control. TPE is asked in batches of `workers` configurations and told
@@ -16,7 +18,7 @@ the same count.
 Optionally (`scheduler = "asha"`), ASHA (ray.tune.schedulers.ASHAScheduler) stops hopeless configurations
 early: while a configuration trains, each curve point that every one of its cells has closed and that carries
 the cheap probe of the domain's metric (`probe_<metric>`, every 5th point and the last) is reported as
-{objective: the median over the cells, curve_point: its index from 1}, and ASHA compares configurations at its
+{objective: by the same rule, curve_point: its index from 1}, and ASHA compares configurations at its
 rungs (curve points). A stopped configuration writes no row for the cells it was training (where the domain does
 not pack, its cells train one after another and only the last one's points complete a report: the cells before
 it keep their rows); it counts against its method's budget once, has no objective, is never chosen, and its
@@ -29,12 +31,8 @@ ended); a method whose latest experiment has its whole budget recorded is done, 
 again in a new experiment (tune-<method>-<k>). The seeded search suggests the same configurations for the same
 results, and a configuration whose cells have rows trains nothing (the rows are the truth its objective is read
 from), so the search runs through what was done in seconds and goes on where it stopped; a configuration that was
-training when the run stopped starts its cells over, and one ASHA had stopped is trained and judged again. At the end:
-`configurations.parquet` (every configuration tried: method, index, knob values, objective, its cells) and
-`tuned.toml` (each method's best configuration, as a space's [methods.<name>] settings).
-
-(About 520 lines, over the project's 500: the search, the records a resumed run reads back and the tables built
-from them are one protocol; the [tune] table's checks, which need no Ray, are apart in tune_plan.py.)
+training when the run stopped starts its cells over, and one ASHA had stopped is trained and judged again.
+`search_table` scores every configuration of a finished search from its records and rows.
 """
 
 from __future__ import annotations
@@ -42,44 +40,27 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
-import statistics
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import Any
 
-import pyarrow as pa
 from ray import tune
 
 from asp_dist.errors import SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.knobs import Range
 from asp_dist.results import store
-from asp_dist.results.location import AnyPath, as_path, parquet_bytes, write_replace
+from asp_dist.results.location import AnyPath, as_path, write_replace
 from asp_dist.spec import CellSpec, field_type
-from asp_dist.sweep import ledger, preflight, signals
-from asp_dist.sweep.ray_host import ray_session
 from asp_dist.sweep.tune import _tune_result_logs
-from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, curve_points, winning_configuration
+from asp_dist.sweep.tune_plan import MethodSearch, TunePlan, configuration_objective, curve_points
 from asp_dist.sweep.tune_storage import TUNE_DIR, tune_storage
 
 log = logging.getLogger(__name__)
 
-PLAN_FILE = ledger.TUNE_PLAN_FILE     # in the run's directory: what a resumed run must match
-CONFIGURATIONS = ledger.TUNE_CONFIGURATIONS
-TUNED = "tuned.toml"
 OBJECTIVE = "objective"
 CURVE_POINT = "curve_point"  # with ASHA: an intermediate result's curve point (from 1), ASHA's time_attr
-
-
-@dataclass
-class TuneResult:
-    name: str
-    sweep_dir: AnyPath
-    best: dict[str, dict[str, Any]]     # method -> {"values": ..., "objective": ..., "index": ...}
-    configurations: int
 
 
 # ---- a trial: one configuration ------------------------------------------------------------------------------
@@ -101,34 +82,38 @@ def configuration_units(search_cells: list[dict], values: dict[str, Any], method
             for s in specs]
 
 
-def objective_of(sweep_dir: AnyPath, units: list[dict[str, Any]], column: str) -> tuple[float, int]:
-    """The median of `column` over the units' cells that have a verified row (NaN when none has), and how many
-    have one. Direction-free: the searcher is told the direction (mode)."""
+def objective_of(sweep_dir: AnyPath, units: list[dict[str, Any]], column: str,
+                 rule: str = "pooled_median") -> tuple[float, int]:
+    """The objective of the units' cells, from their verified rows (tune_plan.configuration_objective: NaN when
+    none has a row), and how many have one."""
     from asp_dist.results.location import parquet_file
 
-    values = []
+    values: list[tuple[int, float | None]] = []
     for unit in units:
         for cell_id, spec in zip(unit["cell_ids"], unit["specs"]):
-            if not store.is_done(sweep_dir, spec["domain"], spec["method"], cell_id):
-                continue
-            with parquet_file(store.cell_path(sweep_dir, spec["domain"], spec["method"], cell_id)) as f:
-                value = f.read(columns=[column]).column(0)[0].as_py()
-            if value is not None and math.isfinite(value):
-                values.append(float(value))
-    return (statistics.median(values) if values else float("nan")), len(values)
+            value = None
+            if store.is_done(sweep_dir, spec["domain"], spec["method"], cell_id):
+                with parquet_file(store.cell_path(sweep_dir, spec["domain"], spec["method"], cell_id)) as f:
+                    value = f.read(columns=[column]).column(0)[0].as_py()
+            values.append((spec["paired"], value))
+    done = sum(v is not None and math.isfinite(v) for _, v in values)
+    return configuration_objective(values, rule), done
 
 
 class CurveObjective:
     """With ASHA: a configuration's intermediate objective, from its cells' curve points as they close (the
     pipeline's on_points batches, asp_dist.training.pipeline.PointsFn). Once every cell has closed point i and
     at least one carries a finite `key` (probe_<metric>: every 5th point and the last), it reports
-    {objective: the median of those values, curve_point: i + 1}; each point once, in order. A cell that
-    closes no more points (failed) holds the reports back: the configuration then trains to its end."""
+    {objective: those values by the run's objective rule (tune_plan.configuration_objective), curve_point: i + 1};
+    each point once, in order. A cell that closes no more points (failed) holds the reports back: the
+    configuration then trains to its end."""
 
-    def __init__(self, cell_ids: list[str], key: str, report: Callable[[dict[str, Any]], None]):
-        self.key, self.report = key, report
-        self.values: dict[str, list[float | None]] = {c: [] for c in cell_ids}
-        self.streamed = dict.fromkeys(cell_ids, 0)  # points of each cell passed on by this run of its unit
+    def __init__(self, cells: dict[str, int], key: str, report: Callable[[dict[str, Any]], None],
+                 rule: str = "pooled_median"):
+        self.key, self.report, self.rule = key, report, rule
+        self.paired = dict(cells)  # cell id -> its paired count
+        self.values: dict[str, list[float | None]] = {c: [] for c in cells}
+        self.streamed = dict.fromkeys(cells, 0)  # points of each cell passed on by this run of its unit
         self.reported = 0  # points 0 .. reported-1 are done with
 
     def seed(self, cell_id: str, values: list[float | None]) -> None:
@@ -151,9 +136,9 @@ class CurveObjective:
         while self.reported < closed:
             i = self.reported
             self.reported += 1
-            finite = [float(v[i]) for v in self.values.values() if v[i] is not None and math.isfinite(v[i])]
-            if finite:
-                self.report({OBJECTIVE: statistics.median(finite), CURVE_POINT: i + 1})
+            objective = configuration_objective([(self.paired[c], v[i]) for c, v in self.values.items()], self.rule)
+            if not math.isnan(objective):
+                self.report({OBJECTIVE: objective, CURVE_POINT: i + 1})
 
 
 def _stored_curve(sweep_dir: AnyPath, spec: dict[str, Any], cell_id: str, key: str) -> list[float | None] | None:
@@ -185,7 +170,8 @@ def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
 
     curve = None
     if plan.get("curve_key"):  # ASHA
-        curve = CurveObjective([cid for unit in units for cid in unit["cell_ids"]], plan["curve_key"], tune.report)
+        cells = {cid: spec["paired"] for unit in units for cid, spec in zip(unit["cell_ids"], unit["specs"])}
+        curve = CurveObjective(cells, plan["curve_key"], tune.report, plan.get("objective", "pooled_median"))
         sweep_dir = as_path(plan["sweep_dir"])
         for unit in units:
             for cell_id, spec in zip(unit["cell_ids"], unit["specs"]):
@@ -196,7 +182,8 @@ def train_configuration(config: dict[str, Any], plan: dict[str, Any]) -> None:
     for unit in units:
         train_unit(unit, report, on_points=curve)
     cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
-    objective, done = objective_of(as_path(plan["sweep_dir"]), units, plan["column"])
+    objective, done = objective_of(as_path(plan["sweep_dir"]), units, plan["column"],
+                                   plan.get("objective", "pooled_median"))
     tune.report({OBJECTIVE: objective, "cells_done": done, "cells_failed": len(cell_ids) - done,
                  "cell_ids": ",".join(cell_ids)})
 
@@ -305,14 +292,17 @@ def _scheduler(plan: TunePlan, search: MethodSearch):
 RECORDS = "records"  # under the run's tune/: one folder of configuration records per Tune experiment
 
 
-def _experiment_name(method: str, k: int = 1) -> str:
-    """A method's k-th Tune experiment (a run stopped midway is searched again in the next)."""
-    return f"tune-{method}" if k == 1 else f"tune-{method}-{k}"
+SEARCH, VALIDATION = "tune", "validate"  # the two stages' experiment names: tune-<method>, validate-<method>
 
 
-def _experiment_numbers(folder: AnyPath, method: str) -> list[int]:
-    """The k of every experiment of `method` named in `folder` (Tune's tune/ or its records/)."""
-    pattern = re.compile(rf"tune-{re.escape(method)}(?:-(\d+))?")
+def _experiment_name(method: str, k: int = 1, stage: str = SEARCH) -> str:
+    """A method's k-th Tune experiment of a stage (a run stopped midway is run again in the next)."""
+    return f"{stage}-{method}" if k == 1 else f"{stage}-{method}-{k}"
+
+
+def _experiment_numbers(folder: AnyPath, method: str, stage: str = SEARCH) -> list[int]:
+    """The k of every experiment of `method` and `stage` named in `folder` (Tune's tune/ or its records/)."""
+    pattern = re.compile(rf"{stage}-{re.escape(method)}(?:-(\d+))?")
     try:
         names = [p.name for p in folder.iterdir()]
     except (FileNotFoundError, NotADirectoryError):
@@ -340,14 +330,14 @@ def _records(sweep_dir: AnyPath, experiment: str) -> list[dict[str, Any]]:
     return [{"number": n, "trial_id": t, "status": st, "values": v, "result": r} for n, t, st, v, r in sorted(records)]
 
 
-def method_experiment(sweep_dir: AnyPath, method: str, budget: int) -> tuple[str, bool]:
-    """The experiment of `method` to read or run, and whether its whole budget is recorded (done). Else a new
-    one: its number above every experiment of the method that Tune or the records name."""
-    recorded = _experiment_numbers(sweep_dir / TUNE_DIR / RECORDS, method)
-    if recorded and len(_records(sweep_dir, _experiment_name(method, recorded[-1]))) >= budget:
-        return _experiment_name(method, recorded[-1]), True
-    known = recorded + _experiment_numbers(sweep_dir / TUNE_DIR, method)
-    return _experiment_name(method, max(known, default=0) + 1), False
+def method_experiment(sweep_dir: AnyPath, method: str, budget: int, stage: str = SEARCH) -> tuple[str, bool]:
+    """The experiment of `method` and `stage` to read or run, and whether its whole budget is recorded (done).
+    Else a new one: its number above every experiment of the method and stage that Tune or the records name."""
+    recorded = _experiment_numbers(sweep_dir / TUNE_DIR / RECORDS, method, stage)
+    if recorded and len(_records(sweep_dir, _experiment_name(method, recorded[-1], stage))) >= budget:
+        return _experiment_name(method, recorded[-1], stage), True
+    known = recorded + _experiment_numbers(sweep_dir / TUNE_DIR, method, stage)
+    return _experiment_name(method, max(known, default=0) + 1, stage), False
 
 
 def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath, workers: int,
@@ -356,7 +346,8 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
     storage_path, storage_fs = tune_storage(sweep_dir)
     info = {"method": search.method, "knobs": sorted(search.ranges), "cells": [c.to_dict() for c in search.cells],
             "sweep_dir": str(sweep_dir), "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s,
-            "column": plan.objective_column, "higher_is_better": plan.higher_is_better}
+            "column": plan.objective_column, "higher_is_better": plan.higher_is_better,
+            "objective": plan.settings.objective}
     if plan.settings.scheduler == "asha":
         info["curve_key"] = f"probe_{plan.settings.metric}"
     trainable = tune.with_resources(tune.with_parameters(train_configuration, plan=info), {"cpu": 1})
@@ -375,30 +366,9 @@ def _tuner(plan: TunePlan, search: MethodSearch, index: int, sweep_dir: AnyPath,
                                              *_tune_result_logs()]))
 
 
-def _check_plan_record(sweep_dir: AnyPath, plan: TunePlan) -> None:
-    """A tune run's directory holds the plan it was started with; another plan there is refused."""
-    record = sweep_dir / PLAN_FILE
-    fingerprint = plan.fingerprint()
-    if record.exists():
-        try:
-            stored = json.loads(record.read_text())
-        except (ValueError, UnicodeDecodeError):
-            stored = None
-        if not isinstance(stored, dict):
-            raise SweepError(f"{record} is not the plan record asp-dist tune writes (unreadable JSON); give this run "
-                             f"another --name, or restore the file")
-        if stored.get("fingerprint") != fingerprint:
-            raise SweepError(f"tune run {plan.name} was started with another plan (space {stored.get('space')}, "
-                             f"settings {stored.get('settings')}); give this one another --name")
-        return
-    write_replace(record, json.dumps({"name": plan.name, "space": plan.space, "domain": plan.domain,
-                                      "fingerprint": fingerprint, "settings": plan.settings.record(),
-                                      "ranges": {m: {k: r.to_toml() for k, r in s.ranges.items()}
-                                                 for m, s in plan.searches.items()}}, indent=1))
-
-
-def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
-    """Every configuration of each method's finished search, from its records, scored from the rows."""
+def search_table(plan: TunePlan, sweep_dir: AnyPath):
+    """Every configuration of each method's finished search (stage 1), from its records, scored from the rows;
+    `default` marks the configurations whose values are the method's defaults."""
     import pandas as pd
 
     records = []
@@ -412,8 +382,9 @@ def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
             units = configuration_units([c.to_dict() for c in search.cells], values, method, str(sweep_dir),
                                         plan.name, 30.0)
             cell_ids = [cid for unit in units for cid in unit["cell_ids"]]
-            objective, done = objective_of(sweep_dir, units, plan.objective_column)
-            record = {"method": method, "configuration": index, "trial_id": trial["trial_id"],
+            objective, done = objective_of(sweep_dir, units, plan.objective_column, plan.settings.objective)
+            record = {"method": method, "stage": "search", "configuration": index, "trial_id": trial["trial_id"],
+                      "default": values == search.default_values(),
                       **{f"knob_{k}": v for k, v in values.items()}, OBJECTIVE: objective,
                       "cells": len(cell_ids), "cells_done": done, "cell_ids": ",".join(cell_ids)}
             if plan.settings.scheduler == "asha":
@@ -432,92 +403,14 @@ def configurations_table(plan: TunePlan, sweep_dir: AnyPath):
     return table
 
 
+def typed(name: str, value: Any) -> Any:
+    """A knob's value from a table as the field's own type (a column shared with other methods' NaN is float)."""
+    value = value.item() if hasattr(value, "item") else value
+    return field_type(name)(value)
+
+
 def _trial_number(trial) -> int:
     """The order Tune created a trial in (its experiment tag starts with it: "3_lr=0.002"); trial ids are random."""
     return int(str(trial.experiment_tag).split("_", 1)[0])
 
 
-def best_configurations(plan: TunePlan, table) -> dict[str, dict[str, Any]]:
-    best = {}
-    for method, search in plan.searches.items():
-        row = winning_configuration(table[table["method"] == method], plan.higher_is_better)
-        if row is None:
-            continue
-        best[method] = {"index": int(row["configuration"]), OBJECTIVE: float(row[OBJECTIVE]),
-                        "values": {k: _typed(k, row[f"knob_{k}"]) for k in search.ranges}}
-    return best
-
-
-def _typed(name: str, value: Any) -> Any:
-    """A knob's value from the table as the field's own type (a column shared with other methods' NaN is float)."""
-    value = value.item() if hasattr(value, "item") else value
-    return field_type(name)(value)
-
-
-def tuned_toml(plan: TunePlan, best: dict[str, dict[str, Any]]) -> str:
-    """The best configuration of each method as a space's [methods.<name>] settings."""
-    lines = [f"# asp-dist tune {plan.space} --name {plan.name}: each method's best configuration by its own objective",
-             f"# (median {plan.objective_column} over its calibration cells; search {plan.settings.search}, "
-             f"budget {plan.settings.budget}, seed {plan.settings.seed}). Use it as a space's settings:",
-             f'#   settings = ["{plan.name}/tuned.toml"]', ""]
-    if plan.settings.scheduler == "asha":
-        lines.insert(3, f"# {_asha(plan.settings)}: each best is among the configurations it did not stop.")
-    for method, b in best.items():
-        lines.append(f"[methods.{method}]  # configuration {b['index']}, objective {b[OBJECTIVE]:.6g}")
-        for key, value in b["values"].items():
-            lines.append(f"{key} = {json.dumps(value)}")
-        lines.append("")
-    return "\n".join(lines)
-
-
-def _asha(settings) -> str:
-    """ASHA's settings in words, "" without it."""
-    if settings.scheduler != "asha":
-        return ""
-    return (f"ASHA with grace_points {settings.grace_points}, reduction_factor {settings.reduction_factor:g}, "
-            f"brackets {settings.brackets}")
-
-
-def run_tune(plan: TunePlan, *, results: str, workers: int = 2, ray_temp_dir: str | None = None,
-             checkpoint_every_s: float = 30.0, max_failures: int = 2, stream: TextIO | None = None) -> TuneResult:
-    """Run (or continue) the tune run of `plan`; see the module docstring."""
-    from asp_dist.sweep.tune import _fit
-
-    logging.getLogger("ray.tune.analysis.experiment_analysis").setLevel(logging.ERROR)
-    stream = stream or sys.stderr
-    sweep_dir = ledger.sweep_dir_for(results, plan.name)
-    os.environ.setdefault("TUNE_DISABLE_STRICT_METRIC_CHECKING", "1")  # a checkpoint's result has no objective yet
-    with signals.sigterm_as_interrupt():
-        if not (sweep_dir / PLAN_FILE).exists():  # a new tune run: the directory is free and writable
-            preflight.check_sweep_dir(sweep_dir)
-        with ledger.sweep_lock(sweep_dir):
-            _check_plan_record(sweep_dir, plan)
-            for method, search in plan.searches.items():
-                start = ("its defaults first" if search.defaults() is not None else
-                         "its defaults lie outside the ranges: all searched") if plan.settings.from_defaults else ""
-                stream.write(f"tune {plan.name}: {method}: {plan.settings.budget} configurations of "
-                             f"{', '.join(sorted(search.ranges))} over {len(search.cells)} cells each "
-                             f"({plan.settings.search}, seed {plan.settings.seed}{', ' + start if start else ''}"
-                             f"{', ' + _asha(plan.settings) if _asha(plan.settings) else ''})\n")
-            with ray_session(workers, None, ray_temp_dir, stream=stream):
-                for index, (method, search) in enumerate(plan.searches.items()):
-                    experiment, done = method_experiment(sweep_dir, method, plan.settings.budget)
-                    if not done:
-                        _fit(_tuner(plan, search, index, sweep_dir, workers, checkpoint_every_s, max_failures,
-                                    experiment))
-                    stream.write(f"tune {plan.name}: {method} done\n")
-            table = configurations_table(plan, sweep_dir)
-            write_replace(sweep_dir / CONFIGURATIONS, parquet_bytes(pa.Table.from_pandas(table, preserve_index=False)))
-            best = best_configurations(plan, table)
-            write_replace(sweep_dir / TUNED, tuned_toml(plan, best))
-    if "stopped_early" in table:
-        stopped = table[table["stopped_early"]].groupby("method").size()
-        stream.write(f"tune {plan.name}: ASHA stopped " + ", ".join(
-            f"{stopped.get(m, 0)} of {plan.settings.budget} {m} configurations" for m in plan.searches) + " early\n")
-    for method, b in best.items():
-        stream.write(f"tune {plan.name}: {method}: best configuration {b['index']} "
-                     f"({plan.objective_column} median {b[OBJECTIVE]:.4g}): "
-                     + ", ".join(f"{k}={v}" for k, v in b["values"].items()) + "\n")
-    stream.write(f"tune {plan.name}: every configuration in {sweep_dir / CONFIGURATIONS}, the best in "
-                 f"{sweep_dir / TUNED}; the cells' rows: asp-dist query {plan.name} --results {results}\n")
-    return TuneResult(plan.name, sweep_dir, best, len(table))
