@@ -22,7 +22,8 @@ from asp_dist.analysis.layout import is_asp, treatment_order
 from asp_dist.analysis.markdown import format_cell
 from asp_dist.analysis.paper import paper_claim
 from asp_dist.analysis.plots import Figure
-from asp_dist.analysis.tuning import read_configurations, tuning_blocks
+from asp_dist.analysis.tuning import read_configurations, tune_grid, tuning_blocks
+from asp_dist.results.grouping import treatment_label
 
 
 def _p(p: float) -> str:
@@ -119,19 +120,34 @@ def where_table(result: StatsResult) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def grid_description(result: StatsResult) -> pd.DataFrame:
+def grid_description(result: StatsResult, configs: pd.DataFrame | None = None) -> pd.DataFrame:
+    """One row per domain: its rows, methods, paired counts, trials and varied knobs. A tune run's cells are named
+    by their configurations (method and index; `configs`: read_configurations, read here when not given), their
+    searched values left to the tuning section: listed, a few hundred configurations fill one cell."""
+    configs = read_configurations(result) if configs is None else configs
     out = []
     for domain, layout in sorted(result.layouts.items()):
         rows = result.rows[result.rows["domain"] == domain]
-        knobs = {k: sorted(rows[k].dropna().unique().tolist()) for k in layout.shared_knobs}
+        tuned_ids, searched, tuned = tune_grid(configs, domain)
+        tuned_rows = rows["cell_id"].isin(tuned_ids) if tuned_ids and "cell_id" in rows else \
+            pd.Series(False, index=rows.index)
+        outside = rows[~tuned_rows]  # a searched knob's values are listed only from rows outside tune runs
+        knobs = {k: sorted((outside if k in searched else rows)[k].dropna().unique().tolist())
+                 for k in layout.shared_knobs}
         for m, ks in layout.method_knobs.items():
             for k in ks:
-                knobs[f"{k} ({m})"] = sorted(rows.loc[rows["method"] == m, k].dropna().unique().tolist())
+                shown = outside if k in searched else rows
+                knobs[f"{k} ({m})"] = sorted(shown.loc[shown["method"] == m, k].dropna().unique().tolist())
+        treatments = rows["treatment"].copy()
+        for i, rec in zip(rows.index[tuned_rows], rows[tuned_rows].to_dict("records")):  # their searched knobs left out
+            treatments[i] = treatment_label(rec["method"], [k for k in layout.method_knobs.get(rec["method"], [])
+                                                            if k not in searched], rec)
+        described = [f"{k} = {', '.join(format_cell(v) for v in vs)}" for k, vs in knobs.items() if vs or not tuned]
         out.append({"domain": domain, "rows": len(rows),
-                    "methods": ", ".join(treatment_order(rows["treatment"])),
+                    "methods": ", ".join(treatment_order(treatments)),
                     "paired": ", ".join(str(p) for p in sorted(rows["paired"].unique())),
                     "trials": f"{rows['trial'].nunique()} ({rows['trial'].min()}–{rows['trial'].max()})",
-                    "varied knobs": "; ".join(f"{k} = {', '.join(format_cell(v) for v in vs)}" for k, vs in knobs.items()) or "none",
+                    "varied knobs": "; ".join(described + ([tuned] if tuned else [])) or "none",
                     "direction": "higher is better" if layout.higher_is_better else "lower is better",
                     "sweeps": ", ".join(sorted(rows["sweep_id"].dropna().astype(str).unique())) if "sweep_id" in rows else "–"})
     return pd.DataFrame(out)
@@ -221,6 +237,21 @@ def rliable_section(result: StatsResult) -> list[Block]:
             "Wilcoxon–Holm says": agree["wilcoxon_holm_call"], "agree": agree["agree_paired"]})
         blocks += [Text("**P(A > B) and the rank tests**, per condition over the paired range:"), Table(shown)]
     return blocks + agreement_blocks(agree, cfg.ci)
+
+
+def default_vs_tuned_blocks(result: StatsResult) -> list[Block]:
+    """Each method against its @default arm (stats/default_vs_tuned); nothing when no sweep ran one."""
+    dvt = result.tables.get("default_vs_tuned", pd.DataFrame())
+    if dvt.empty:
+        return []
+    return [Heading(3, "Default vs tuned"),
+            Text("Each method at its tuned setting against its `@default` arm (the knobs' defaults), over the "
+                 "paired range's complete blocks; these arms are left out of the tests above. median_diff: tuned − "
+                 "default in score units (> 0: tuned better, whichever way the metric points); p: two-sided "
+                 "Wilcoxon signed-rank, uncorrected."),
+            Table(dvt, ["domain", "condition", "tuned", "default", "paired_range", "n_blocks", "tuned_better",
+                        "tuned_worse", "ties", "median_tuned", "median_default", "median_diff", "p_wilcoxon",
+                        "better"])]
 
 
 def min_wilcoxon_p(n: int) -> float:
@@ -351,10 +382,12 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
             Table(t["efficiency"], ["domain", "condition", "treatment", "threshold", "threshold_rule",
                                     "min_paired_reaching", "median_there"]))
 
+    doc.add(*default_vs_tuned_blocks(result))
     doc.add(*rliable_section(result))
-    doc.add(*tuning_blocks(read_configurations(result)))  # only where an input is a tune run
+    configs = read_configurations(result)
+    doc.add(*tuning_blocks(configs))  # only where an input is a tune run
 
-    doc.add(Heading(2, "What was run"), Table(grid_description(result)))
+    doc.add(Heading(2, "What was run"), Table(grid_description(result, configs)))
     missing = t["missing"]
     notes = list(result.notes) + list(figure_notes)
     if notes:
@@ -388,9 +421,9 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                                   "wins_a", "ties", "wins_b", "p_nemenyi", "p_wilcoxon", "p_holm", "better",
                                   "significant", "views_agree"]),
             Text("Every table is also in `stats/<name>.parquet` and `stats/<name>.md` "
-                 "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, missing; the rliable "
-                 "view's normalisation, iqm, aggregate, improvement, improvement_by_paired, profiles, "
-                 "rliable_agreement)"
+                 "(summary, tests, pairwise, by_paired, efficiency, claim_2n, knob_trend, default_vs_tuned, "
+                 "missing; the rliable view's normalisation, iqm, aggregate, improvement, improvement_by_paired, "
+                 "profiles, rliable_agreement)"
                  + (f"; {', '.join(latex_tables)} also as booktabs LaTeX, `stats/<name>.tex`, ready to `\\input`"
                     if latex_tables else "") + "."))
 
@@ -429,6 +462,9 @@ METHODS_TEXT = """\
   the paper's claim, checked directly: median of ASP at n against the other method at 2n, with
   a bootstrap interval of the median per-trial gain of ASP (positive = ASP better, for either
   metric direction).
+- **Default vs tuned.** A method's `@default` arm (its knobs' defaults, beside the tuned method) is
+  left out of the tests above and compared with its method alone: the Wilcoxon signed-rank test over
+  the complete blocks of the paired range, uncorrected.
 - **Trend with a knob.** Spearman's ρ between a numeric knob (≥ 3 values) and the per-block
   difference ASP − other.
 - Metric directions come from the rows (`<metric>_higher_is_better`, `metric_directions`).

@@ -193,7 +193,7 @@ def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command:
     from asp_dist.analysis.latex_tables import write_latex_tables
     from asp_dist.analysis.report import build_report
     from asp_dist.analysis.rliable_plots import plot_rliable
-    from asp_dist.analysis.tuning import plot_tuning, read_configurations
+    from asp_dist.analysis.tuning import plot_expected_best, plot_tuning, read_configurations
 
     start = time.perf_counter()
     result = run_stats(located, cfg)
@@ -207,7 +207,9 @@ def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command:
     figs, notes = plot_all(result, stage / "figures") if figures else ([], [])
     if figures:
         figs += plot_rliable(result, stage / "figures")
-        figs += plot_tuning(read_configurations(result), stage / "figures")  # a tune run's search, per method
+        configs = read_configurations(result)
+        figs += plot_tuning(configs, stage / "figures")  # a tune run's search, per method
+        figs += plot_expected_best(configs, stage / "figures")  # and its expected best against the budget
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
     doc = build_report(result, stage, figs, notes, sources=[str(p) for p in located], command=command,
                        latex_tables=list(latex))
