@@ -30,12 +30,17 @@ def _points(run: Path) -> int:
     return curve_points(int(row["train_steps"]))
 
 
+def _search(table: pd.DataFrame) -> pd.DataFrame:
+    return table[table["stage"] == "search"] if "stage" in table else table
+
+
 def _best(table: pd.DataFrame, method: str, higher: bool) -> pd.Series:
     return winning_configuration(table[table["method"] == method], higher)
 
 
 def compare(full: Path, asha: Path) -> dict:
-    a, b = pd.read_parquet(full / "configurations.parquet"), pd.read_parquet(asha / "configurations.parquet")
+    # the searches only: a two-stage run's validation rows are another stage (bench/two_stage_cost.py)
+    a, b = (_search(pd.read_parquet(run / "configurations.parquet")) for run in (full, asha))
     plan = json.loads((full / "tune-plan.json").read_text())
     higher = get_domain(plan["domain"]).metrics[plan["settings"]["metric"]].higher_is_better
     n = _points(asha)

@@ -93,18 +93,17 @@ def _objective_words(plan: TunePlan) -> str:
 def tuned_toml(plan: TunePlan, best: dict[str, dict[str, Any]]) -> str:
     """Each method's chosen setting as a space's [methods.<name>] settings, with where it was chosen."""
     settings = plan.settings
+    search = f"search {settings.search}, budget {settings.budget}, seed {settings.seed}"
     if settings.top_k:
         trials = settings.validation_trials
         how = [f"# chosen on validation trials {trials[0]}-{trials[-1]} among its default and its {settings.top_k} best "
-               f"search configurations", f"# ({_objective_words(plan)}; search {settings.search}, budget "
-               f"{settings.budget}, seed {settings.seed}, on the calibration trials). Use it as a space's settings:"]
+               f"search configurations", f"# ({_objective_words(plan)}; {search}, on the calibration trials)."]
     else:
-        how = [f"# by its objective on the calibration trials ({_objective_words(plan)}; search {settings.search},",
-               f"# budget {settings.budget}, seed {settings.seed}). Use it as a space's settings:"]
-    lines = [f"# asp-dist tune {plan.space} --name {plan.name}: each method's tuned setting,", *how,
-             f'#   settings = ["{plan.name}/tuned.toml"]', ""]
+        how = [f"# by its objective on the calibration trials ({_objective_words(plan)}; {search})."]
     if settings.scheduler == "asha":
-        lines.insert(len(how) + 1, f"# {_asha(settings)}: a configuration it stopped is never chosen.")
+        how.append(f"# {_asha(settings)}: a configuration it stopped is never chosen.")
+    lines = [f"# asp-dist tune {plan.space} --name {plan.name}: each method's tuned setting,", *how,
+             "# Use it as a space's settings:", f'#   settings = ["{plan.name}/tuned.toml"]', ""]
     for method, b in best.items():
         where = ("the default won validation" if b["default"] and b["stage"] == "validation" else
                  "its default" if b["default"] else f"configuration {b['index']}")
