@@ -1,5 +1,6 @@
 """The report's tuning section: the expected best objective against the budget, the validation stage's tables, the
-per-configuration values, and the "What was run" table of a tune run (no Ray, no training)."""
+per-configuration values, and the "What was run" table of a tune run; and which of a tune run's rows the statistics
+compare (no Ray, no training)."""
 
 from __future__ import annotations
 
@@ -233,3 +234,146 @@ def test_a_sweeps_what_was_run_still_lists_its_knobs():
     result = _tune_run_result(EXAMPLES / "tune-levers")
     listed = grid_description(result, pd.DataFrame()).iloc[0]  # no configurations: read as a sweep's rows
     assert listed["methods"].startswith("pc, osp[lambda_paired=") and listed["varied knobs"].startswith("lr = ")
+
+
+# ---- the rows a tune run's statistics compare ---------------------------------------------------------------
+def _cell_rows(sweep_dir: Path) -> pd.DataFrame:
+    """One row per cell of every configuration of a committed tune run (either stage), paired and trial read from
+    the cell id, the configuration's knob values, and a metric that differs from row to row: what tune_run_rows
+    reads of the rows, without reading ~2,000 files."""
+    configs = pd.read_parquet(sweep_dir / "configurations.parquet")
+    rng = np.random.default_rng(0)
+    rows = []
+    for rec in configs.to_dict("records"):
+        for cell in rec["cell_ids"].split(","):
+            paired, trial = map(int, re.search(r"-p(\d+)-t(\d+)-", cell).groups())
+            rows.append({"domain": "levers", "method": rec["method"], "paired": paired, "trial": trial,
+                         "root_seed": 0, "cell_id": cell, **{k[5:]: v for k, v in rec.items() if k.startswith("knob_")},
+                         "eval_mixed": rec["objective"] + rng.normal(0, 0.01), "eval_mixed_higher_is_better": False})
+    return pd.DataFrame(rows)
+
+
+def _cells_of(configs: pd.DataFrame, method_of) -> dict[str, str]:
+    return {c: method_of(rec) for rec in configs.to_dict("records") for c in rec["cell_ids"].split(",")}
+
+
+def test_a_validated_tune_runs_statistics_compare_each_chosen_setting_with_its_default(tmp_path):
+    from asp_dist.analysis.job import tune_run_rows
+    from asp_dist.analysis.layout import domain_layout, label_rows, treatment_order
+    from asp_dist.analysis.tables import StatsConfig, default_vs_tuned_table
+
+    run = EXAMPLES / "tune-validated-levers"
+    configs = pd.read_parquet(run / "configurations.parquet")
+    validation = configs[configs["stage"] == "validation"]
+    lost = validation[validation["default"] & ~validation["chosen"]]  # the defaults, none of which won
+    expected = {**_cells_of(lost, lambda r: f"{r['method']}@default"),
+                **_cells_of(validation[validation["chosen"]], lambda r: r["method"])}
+    rows = _cell_rows(run)
+    kept, note = tune_run_rows(rows, run)
+    assert len(kept) == len(expected) == 600 and dict(zip(kept["cell_id"], kept["method"])) == expected
+    layout = domain_layout(kept, "eval_mixed")
+    labelled = label_rows(kept, layout, "eval_mixed")
+    assert layout.shared_knobs == [] and set(labelled["condition"]) == {"all"}
+    assert treatment_order(labelled["treatment"]) == ["pc", "pc@default", "osp", "osp@default", "asp", "asp@default"]
+    dvt = pd.DataFrame(default_vs_tuned_table(labelled, StatsConfig(), layout))
+    assert list(zip(dvt["tuned"], dvt["default"], dvt["n_blocks"])) == [
+        ("pc", "pc@default", 100), ("osp", "osp@default", 100), ("asp", "asp@default", 100)]
+    assert note == ("tune-validated-levers is a tune run: the statistics below compare each method's setting chosen "
+                    "on the validation trials (PC configuration 14, OSP configuration 12, ASP configuration 17) and "
+                    "its default (`<method>@default`) where another setting won: 600 of its 3,000 rows. Every "
+                    "configuration is in the tuning section.")
+    # a default that wins has no arm of its own: it is the method's tuned setting
+    won = configs.assign(chosen=configs["chosen"].where(configs["method"] != "pc", configs["default"]
+                                                        & configs["stage"].eq("validation")))
+    kept, note = tune_run_rows(rows, _with_configurations(run, won, tmp_path))
+    assert set(kept["method"]) == {"pc", "osp", "osp@default", "asp", "asp@default"} and "PC its default" in note
+
+
+def _with_configurations(run: Path, configs: pd.DataFrame, tmp_path: Path) -> Path:
+    """A directory named as run, with its tune-plan.json and the given configurations.parquet."""
+    where = tmp_path / run.name
+    where.mkdir()
+    (where / "tune-plan.json").write_text((run / "tune-plan.json").read_text())
+    configs.to_parquet(where / "configurations.parquet")
+    return where
+
+
+def test_a_tune_run_without_validation_compares_each_methods_search_winner():
+    from asp_dist.analysis.job import tune_run_rows
+    from asp_dist.analysis.layout import domain_layout, label_rows, treatment_order
+
+    run = EXAMPLES / "tune-levers"
+    configs = pd.read_parquet(run / "configurations.parquet")
+    assert "stage" not in configs
+    # lower error is better; ties would go to the lower index
+    best = configs.sort_values(["method", "objective", "configuration"]).groupby("method", sort=False).head(1)
+    kept, note = tune_run_rows(_cell_rows(run), run)
+    assert dict(zip(kept["cell_id"], kept["method"])) == _cells_of(best, lambda r: r["method"])
+    assert sorted(best["configuration"]) == [11, 12, 15] and len(kept) == 75
+    labelled = label_rows(kept, layout := domain_layout(kept, "eval_mixed"), "eval_mixed")
+    assert set(labelled["condition"]) == {"all"} and treatment_order(labelled["treatment"]) == ["pc", "osp", "asp"]
+    assert not any(layout.method_knobs.values())
+    assert "without a validation stage" in note and "PC configuration 12, OSP configuration 11, ASP configuration 15" \
+        in note and "75 of its 1,800 rows" in note
+
+
+def test_a_sweeps_rows_are_not_narrowed():
+    from asp_dist.analysis.job import tune_run_rows
+
+    rows = _cell_rows(EXAMPLES / "tune-levers")
+    same, note = tune_run_rows(rows, EXAMPLES / "confirm-levers")  # a sweep: no configurations.parquet
+    assert same is rows and note == ""
+
+
+def _copy_cells(source: Path, target: Path, cell_ids) -> None:
+    for cell in cell_ids:
+        (found,) = source.glob(f"cells/*/*/{cell}.parquet")
+        (target / found.relative_to(source)).parent.mkdir(parents=True, exist_ok=True)
+        (target / found.relative_to(source)).write_bytes(found.read_bytes())
+
+
+def test_the_stats_job_narrows_a_tune_runs_rows_only(tmp_path):
+    """A small copy of tune-validated-levers (its validation cells of two trials and a few search cells) beside a
+    sweep holding two of its cells: the tune run's rows are narrowed, the sweep's all kept, duplicates dropped."""
+    from asp_dist.analysis.job import read_rows, run_stats
+    from asp_dist.analysis.tables import StatsConfig
+    from asp_dist.results.query import open_inputs
+
+    source = EXAMPLES / "tune-validated-levers"
+    configs = pd.read_parquet(source / "configurations.parquet")
+    validation = configs[configs["stage"] == "validation"]
+    run, sweep = tmp_path / "tune-validated-levers", tmp_path / "sweep"
+    run.mkdir()
+    for name in ("configurations.parquet", "tune-plan.json"):
+        (run / name).write_bytes((source / name).read_bytes())
+    chosen = [c for ids in validation.loc[validation["chosen"], "cell_ids"] for c in ids.split(",")
+              if re.search(r"-t40[56]-", c)]
+    defaults = [c for ids in validation.loc[validation["default"], "cell_ids"] for c in ids.split(",")
+                if re.search(r"-t40[56]-", c)]
+    others = [c for ids in validation.loc[~validation["default"] & ~validation["chosen"], "cell_ids"]
+              for c in ids.split(",") if re.search(r"-t405-", c)]
+    search = configs.loc[configs["stage"].eq("search") & configs["cells_done"].gt(0), "cell_ids"].iloc[0].split(",")[:5]
+    _copy_cells(source, run, chosen + defaults + others + search)
+    _copy_cells(source, sweep, [others[0], chosen[0]])  # a sweep that ran one dropped cell and one kept cell
+    rows, notes = read_rows(open_inputs([run, sweep]))
+    assert sorted(rows["cell_id"]) == sorted(chosen + defaults + [others[0], chosen[0]])
+    assert rows.loc[rows["cell_id"] == others[0], "method"].tolist() == [others[0].split("-")[1]]  # the sweep's
+    assert notes == [f"tune-validated-levers is a tune run: the statistics below compare each method's setting "
+                     f"chosen on the validation trials (PC configuration 14, OSP configuration 12, ASP configuration "
+                     f"17) and its default (`<method>@default`) where another setting won: 60 of its "
+                     f"{len(chosen + defaults + others + search)} rows. Every configuration is in the tuning section."]
+    next(sweep.glob(f"cells/*/*/{others[0]}.parquet")).unlink()  # a knob varied within pc would split it
+    result = run_stats([run, sweep], StatsConfig(n_boot=100))
+    assert result.rows["cell_id"].is_unique and len(result.rows) == len(chosen + defaults)  # the cell in both: once
+    assert any("duplicate row(s) of 1 cell id(s)" in n for n in result.notes) and result.tune_notes == notes
+    assert set(result.rows["treatment"]) == {"pc", "pc@default", "osp", "osp@default", "asp", "asp@default"}
+    assert list(result.tables["default_vs_tuned"]["tuned"]) == ["pc", "osp", "asp"]
+
+
+def test_the_report_says_at_its_top_which_rows_of_a_tune_run_it_compares(tmp_path):
+    from asp_dist.analysis.report import build_report
+
+    result = _tune_run_result(EXAMPLES / "tune-levers")
+    result.tune_notes = ["tune-levers is a tune run: the statistics below compare this and that."]
+    text = render_markdown(build_report(result, tmp_path))
+    assert text.index("tune-levers is a tune run: the statistics below") < text.index("## At a glance")

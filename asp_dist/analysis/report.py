@@ -329,7 +329,8 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
             Text(f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} from {len(result.rows)} rows"
                  + (f" ({len(result.inputs.files)} files)" if result.inputs else "")
                  + f". Metric: `{cfg.metric}`; α = {cfg.alpha}; bootstrap {cfg.n_boot} resamples, seed {cfg.seed}."
-                 + (f" Command: `{command}`." if command else "")))
+                 + (f" Command: `{command}`." if command else "")),
+            *(Text(note) for note in result.tune_notes))  # a tune run's statistics speak of a few of its rows
 
     doc.add(Heading(2, "At a glance: did ASP beat OSP and PC?"),
             Text("\n".join(headline_sentences(result))), Table(glance_table(result)),

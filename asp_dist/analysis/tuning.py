@@ -15,19 +15,15 @@ counts as "search", and the search's tables read only those rows.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 
 from asp_dist.analysis.document import Block, Heading, Table, Text
+from asp_dist.analysis.job import read_tune_run
 from asp_dist.analysis.markdown import format_value
-from asp_dist.errors import SpecError
 from asp_dist.results.location import as_path
-from asp_dist.sweep.ledger import TUNE_CONFIGURATIONS as CONFIGURATIONS  # what asp-dist tune writes
-from asp_dist.sweep.ledger import TUNE_PLAN_FILE as PLAN_FILE
 from asp_dist.sweep.tune_plan import winning_configuration
 
 
@@ -36,16 +32,10 @@ def read_configurations(result) -> pd.DataFrame:
     higher_is_better); empty when no input is a tune run."""
     frames = []
     for sweep_dir in (result.inputs.sweep_dirs if result.inputs is not None else []):
-        path = as_path(sweep_dir) / CONFIGURATIONS
-        if not path.exists():
+        found = read_tune_run(sweep_dir)
+        if found is None:
             continue
-        try:
-            table = pd.read_parquet(str(path)) if isinstance(path, Path) else pd.read_parquet(path.open_input())
-            plan = json.loads((as_path(sweep_dir) / PLAN_FILE).read_text())
-            domain = plan["domain"]
-        except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as err:
-            raise SpecError(f"{sweep_dir} holds a {CONFIGURATIONS} or {PLAN_FILE} that cannot be read "
-                            f"({type(err).__name__}); the tune run's files are damaged") from None
+        table, domain, _ = found
         layout = result.layouts.get(domain)
         higher = layout.higher_is_better if layout is not None else True
         frames.append(table.assign(run=as_path(sweep_dir).name, domain=domain, higher_is_better=higher))

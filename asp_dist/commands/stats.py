@@ -218,7 +218,7 @@ def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command:
         reports.append(write_atomic(stage / "report.md", render_markdown(doc)))
     if "html" in formats:
         reports.append(write_html(doc))
-    for note in result.notes + notes:
+    for note in result.tune_notes + result.notes + notes:
         log(f"note: {note}")
     return [out_dir / p.relative_to(stage) for p in reports]
 
