@@ -187,6 +187,22 @@ def test_the_candidates_are_the_default_then_the_best_others_and_stage_two_ties_
     assert [c.search_objective for c in chosen] == [0.9, 0.95, 0.8]
 
 
+def test_a_stage_is_done_when_its_records_hold_its_budget_and_else_runs_again_in_a_new_experiment(tmp_path):
+    """What makes a resumed tune run skip a method's search or validation: the records of its latest experiment."""
+    from asp_dist.sweep.tuning import RECORDS, SEARCH, VALIDATION, method_experiment
+
+    records = tmp_path / "tune" / RECORDS
+    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp", False)
+    (records / "validate-osp").mkdir(parents=True)
+    (tmp_path / "tune" / "validate-osp").mkdir()  # Tune's folder of the stopped experiment
+    record = {"trial_id": "x", "status": "TERMINATED", "values": {"candidate": 0}, "result": {}}
+    (records / "validate-osp" / "0.json").write_text(json.dumps({"number": 0, **record}))
+    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp-2", False)  # one of two: again
+    (records / "validate-osp" / "1.json").write_text(json.dumps({"number": 1, **record}))
+    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp", True)
+    assert method_experiment(tmp_path, "osp", 2, SEARCH) == ("tune-osp", False)  # the stages are apart
+
+
 def test_tuning_happens_on_calibration_trials_only(tmp_path):
     with pytest.raises(SweepError, match=r"tune on calibration trials \(100-999\); its grid has trial\(s\) 1000, 1001"):
         plan_of(tmp_path, "budget = 2", GRID.replace("first = 100, last = 101", "first = 1000, last = 1001"))
@@ -449,7 +465,7 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     """SIGKILL the tune run once some cells have rows, run it again: every method ends with exactly its budget
     of configurations and then its default and best configuration validated on trials of their own, each
     configuration's cells have one row each, rows written before the kill are never rewritten, tuned.toml holds
-    each method's validation winner as space settings, and a third run trains nothing. Tune's own state is
+    each method's validation winner as space settings, and both stages' records say they are done. Tune's own state is
     never unpickled on the way: pickles planted where Tune keeps it (tuner.pkl, a searcher's state), which
     Tuner.restore would load, run nothing."""
     results, ray_temp = tmp_path / "runs", f"/tmp/asp-tk-{os.getpid()}"  # Ray's socket paths are short
@@ -509,10 +525,9 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     path = space(tmp_path, f'settings = ["{sweep_dir / "tuned.toml"}"]\n'
                  + GRID.replace("first = 100, last = 101", "first = 1000, last = 1000"), "confirm.toml")
     assert [c.lr for c in expand(path) if c.method == "pc"] == [pytest.approx(tuned["pc"]["lr"])] * 2
-    # Run once more: both stages done, nothing trained, the same table
-    last = cli(*args, timeout=300)
-    assert last.returncode == 0 and "configurations, last" not in last.stderr, last.stderr[-2000:]
-    pd.testing.assert_frame_equal(pd.read_parquet(sweep_dir / "configurations.parquet"), table)
+    # Both stages' records say they are done: a run again starts no Tune experiment (tested without Ray below)
+    from asp_dist.sweep.tuning import VALIDATION, method_experiment
+    assert all(method_experiment(sweep_dir, m, 2, VALIDATION)[1] for m in ("pc", "osp", "asp"))
 
 
 @pytest.mark.parametrize("higher", [True, False])
