@@ -192,15 +192,15 @@ def test_a_stage_is_done_when_its_records_hold_its_budget_and_else_runs_again_in
     from asp_dist.sweep.tuning import RECORDS, SEARCH, VALIDATION, method_experiment
 
     records = tmp_path / "tune" / RECORDS
-    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp", False)
-    (records / "validate-osp").mkdir(parents=True)
-    (tmp_path / "tune" / "validate-osp").mkdir()  # Tune's folder of the stopped experiment
+    assert method_experiment(tmp_path, "all", 2, VALIDATION) == ("validate-all", False)
+    (records / "validate-all").mkdir(parents=True)
+    (tmp_path / "tune" / "validate-all").mkdir()  # Tune's folder of the stopped experiment
     record = {"trial_id": "x", "status": "TERMINATED", "values": {"candidate": 0}, "result": {}}
-    (records / "validate-osp" / "0.json").write_text(json.dumps({"number": 0, **record}))
-    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp-2", False)  # one of two: again
-    (records / "validate-osp" / "1.json").write_text(json.dumps({"number": 1, **record}))
-    assert method_experiment(tmp_path, "osp", 2, VALIDATION) == ("validate-osp", True)
-    assert method_experiment(tmp_path, "osp", 2, SEARCH) == ("tune-osp", False)  # the stages are apart
+    (records / "validate-all" / "0.json").write_text(json.dumps({"number": 0, **record}))
+    assert method_experiment(tmp_path, "all", 2, VALIDATION) == ("validate-all-2", False)  # one of two: again
+    (records / "validate-all" / "1.json").write_text(json.dumps({"number": 1, **record}))
+    assert method_experiment(tmp_path, "all", 2, VALIDATION) == ("validate-all", True)
+    assert method_experiment(tmp_path, "all", 2, SEARCH) == ("tune-all", False)  # the stages are apart
 
 
 def test_tuning_happens_on_calibration_trials_only(tmp_path):
@@ -527,7 +527,7 @@ def test_tune_killed_and_resumed_evaluates_no_configuration_or_cell_twice(tmp_pa
     assert [c.lr for c in expand(path) if c.method == "pc"] == [pytest.approx(tuned["pc"]["lr"])] * 2
     # Both stages' records say they are done: a run again starts no Tune experiment (tested without Ray below)
     from asp_dist.sweep.tuning import VALIDATION, method_experiment
-    assert all(method_experiment(sweep_dir, m, 2, VALIDATION)[1] for m in ("pc", "osp", "asp"))
+    assert method_experiment(sweep_dir, "all", 6, VALIDATION)[1]  # one experiment: 3 methods × 2 candidates
 
 
 @pytest.mark.parametrize("higher", [True, False])

@@ -8,8 +8,8 @@ with the run's objective rule and seed rule, and the best of them there is the m
 goes to the default, then to the better search rank. Every method validates the same number of candidates
 where its search finished that many (`top_k` + 1), so the budget stays equal in both stages.
 
-One Tune experiment per method (validate-<method>, its trials a grid over the candidates), run, recorded and
-resumed as the search's are: a candidate whose cells have rows trains nothing, and the rows are what it is
+One Tune experiment for every method's candidates (validate-all, its trials a grid over them), run, recorded and
+resumed as a search's is: a candidate whose cells have rows trains nothing, and the rows are what it is
 scored from.
 """
 
@@ -86,44 +86,53 @@ def validate_candidate(config: dict[str, Any], entries: list[dict[str, Any]]) ->
     train_configuration(entry["values"], entry["plan"])
 
 
-def validation_tuner(plan: TunePlan, search: MethodSearch, chosen: list[Candidate], sweep_dir: AnyPath, workers: int,
+ALL = "all"  # the one validation experiment's name: validate-all (every method's candidates)
+
+
+def _entry(plan: TunePlan, search: MethodSearch, candidate: Candidate, sweep_dir: AnyPath,
+           checkpoint_every_s: float) -> dict[str, Any]:
+    """What the trainable needs of one candidate: its values and the search's trainable's plan, on stage 2's cells."""
+    return {"values": candidate.values, "plan": {
+        "method": search.method, "knobs": sorted(search.ranges), "cells": [c.to_dict() for c in search.validation_cells],
+        "sweep_dir": str(sweep_dir), "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s,
+        "column": plan.objective_column, "higher_is_better": plan.higher_is_better,
+        "objective": plan.settings.objective}}
+
+
+def validation_tuner(plan: TunePlan, chosen: dict[str, list[Candidate]], sweep_dir: AnyPath, workers: int,
                      checkpoint_every_s: float, max_failures: int, experiment: str) -> tune.Tuner:
-    """A new Tune experiment training every candidate of one method on the validation trials."""
+    """A new Tune experiment training every method's candidates on the validation trials: one experiment, so that
+    the workers stay busy across methods (a method's few candidates would leave one idle at its end)."""
     storage_path, storage_fs = tune_storage(sweep_dir)
-    info = {"method": search.method, "knobs": sorted(search.ranges),
-            "cells": [c.to_dict() for c in search.validation_cells], "sweep_dir": str(sweep_dir),
-            "sweep_id": plan.name, "checkpoint_every_s": checkpoint_every_s, "column": plan.objective_column,
-            "higher_is_better": plan.higher_is_better, "objective": plan.settings.objective}
-    entries = [{"values": c.values, "plan": info} for c in chosen]
+    entries = [_entry(plan, plan.searches[m], c, sweep_dir, checkpoint_every_s) for m in plan.searches for c in chosen[m]]
     trainable = tune.with_resources(tune.with_parameters(validate_candidate, entries=entries), {"cpu": 1})
     records = str(sweep_dir / TUNE_DIR / RECORDS / experiment)
     return tune.Tuner(
-        trainable, param_space={ENTRY: tune.grid_search(list(range(len(chosen))))},
+        trainable, param_space={ENTRY: tune.grid_search(list(range(len(entries))))},
         tune_config=tune.TuneConfig(max_concurrent_trials=workers, reuse_actors=True),
         run_config=tune.RunConfig(name=experiment, storage_path=storage_path, storage_filesystem=storage_fs,
                                   verbose=0, failure_config=tune.FailureConfig(max_failures=max_failures),
                                   checkpoint_config=tune.CheckpointConfig(num_to_keep=1),
-                                  callbacks=[TuneProgress(plan.name, f"{search.method} validation", len(chosen),
+                                  callbacks=[TuneProgress(plan.name, "validation", len(entries),
                                                           plan.higher_is_better, records, (ENTRY,)),
                                              *_tune_result_logs()]))
 
 
 def run_validation(plan: TunePlan, chosen: dict[str, list[Candidate]], sweep_dir: AnyPath, workers: int,
                    checkpoint_every_s: float, max_failures: int, stream) -> None:
-    """Train every method's candidates on the validation trials, method after method; a method whose validation
-    is recorded whole is skipped."""
+    """Train every method's candidates on the validation trials, unless the validation is recorded whole."""
     from asp_dist.sweep.tune import _fit
 
     trials = plan.settings.validation_trials
-    for method, search in plan.searches.items():
-        experiment, done = method_experiment(sweep_dir, method, len(chosen[method]), VALIDATION)
-        if not done:
+    total = sum(len(c) for c in chosen.values())
+    experiment, done = method_experiment(sweep_dir, ALL, total, VALIDATION)
+    if not done:
+        for method, search in plan.searches.items():
             stream.write(f"tune {plan.name}: {method}: validating {len(chosen[method])} configurations (its default "
                          f"and its best {len(chosen[method]) - 1}) on trials {trials[0]}-{trials[-1]}, "
                          f"{len(search.validation_cells)} cells each\n")
-            _fit(validation_tuner(plan, search, chosen[method], sweep_dir, workers, checkpoint_every_s, max_failures,
-                                  experiment))
-        stream.write(f"tune {plan.name}: {method} validation done\n")
+        _fit(validation_tuner(plan, chosen, sweep_dir, workers, checkpoint_every_s, max_failures, experiment))
+    stream.write(f"tune {plan.name}: validation done\n")
 
 
 def validation_table(plan: TunePlan, chosen: dict[str, list[Candidate]], sweep_dir: AnyPath):

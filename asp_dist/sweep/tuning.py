@@ -292,7 +292,7 @@ def _scheduler(plan: TunePlan, search: MethodSearch):
 RECORDS = "records"  # under the run's tune/: one folder of configuration records per Tune experiment
 
 
-SEARCH, VALIDATION = "tune", "validate"  # the two stages' experiment names: tune-<method>, validate-<method>
+SEARCH, VALIDATION = "tune", "validate"  # the two stages' experiment names: tune-<method>, validate-all
 
 
 def _experiment_name(method: str, k: int = 1, stage: str = SEARCH) -> str:
