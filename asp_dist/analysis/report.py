@@ -317,6 +317,9 @@ def _name(result: StatsResult, out_dir: Path) -> str:
     return out_dir.name
 
 
+NARROWED = "; of a tune run, the rows the sentence below names"  # its files are every configuration's
+
+
 def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Figure] = (),
                  figure_notes: Sequence[str] = (), sources: Sequence[str] = (), command: str = "",
                  latex_tables: Sequence[str] = ()) -> Document:
@@ -327,7 +330,7 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
     doc = Document(f"Sweep report: {_name(result, out_dir)}", out_dir)
     doc.add(Heading(1, doc.title),
             Text(f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} from {len(result.rows)} rows"
-                 + (f" ({len(result.inputs.files)} files)" if result.inputs else "")
+                 + (f" ({len(result.inputs.files)} files{NARROWED if result.tune_notes else ''})" if result.inputs else "")
                  + f". Metric: `{cfg.metric}`; α = {cfg.alpha}; bootstrap {cfg.n_boot} resamples, seed {cfg.seed}."
                  + (f" Command: `{command}`." if command else "")),
             *(Text(note) for note in result.tune_notes))  # a tune run's statistics speak of a few of its rows
