@@ -5,6 +5,7 @@ are compared within trials).
 Input: per-trial scores ``y`` (trials x treatments, larger is better; a trial's score of a treatment is the
 mean over its paired counts in the registered range, or the mean within-block rank with ``statistic="rank"``)
 in the order the trials were added, and the trial counts at which the test looked (``looks``, ascending).
+NaN marks a treatment a trial did not train because every comparison it is in was decided before.
 
 Two tests, chosen between by measurement (bench/sequential_error.py, docs/decisions/0059):
 
@@ -89,19 +90,22 @@ def trial_scores(blocks: np.ndarray, statistic: str = "mean") -> np.ndarray:
     if statistic == "rank":
         from scipy.stats import rankdata
 
-        blocks = rankdata(blocks, axis=2)
+        blocks = rankdata(blocks, axis=2, nan_policy="omit")  # an untrained treatment stays NaN
     return blocks.mean(axis=1)
 
 
-def permutation_draws(trials: int, treatments: int, permutations: int, seed: int) -> np.ndarray:
-    """draws x trials x treatments: each draw's permutation of the treatments within each trial. Draw 0 is the
-    identity (the observed data), as in AdaStop; a trial's permutations do not depend on how many trials
-    there are, so a longer registration repeats a shorter one's draws."""
-    rng = np.random.default_rng([seed, treatments])
-    out = np.empty((permutations, trials, treatments), dtype=np.int8)
-    for t in range(trials):  # column by column: trial t's draws are the same for any total
-        out[:, t, :] = np.argsort(rng.random((permutations, treatments)), axis=1)
-    out[0] = np.arange(treatments)
+def permutation_draws(present: np.ndarray, permutations: int, seed: int) -> np.ndarray:
+    """draws x trials x treatments: each draw's permutation of the treatments within each trial, among those
+    the trial has (`present`, trials x treatments booleans: a treatment no open comparison needs any more is
+    not trained in later trials). Draw 0 is the identity (the observed data), as in AdaStop. A trial's draws
+    depend only on the seed, its position and what it has, so a run that grows repeats a shorter one's draws."""
+    n, k = present.shape
+    out = np.broadcast_to(np.arange(k, dtype=np.int8), (permutations, n, k)).copy()
+    for t in range(n):
+        cols = np.flatnonzero(present[t])
+        keys = np.random.default_rng([seed, t, k]).random((permutations, len(cols)))
+        out[:, t, cols] = cols[np.argsort(keys, axis=1)]
+    out[0] = np.arange(k)
     return out
 
 
@@ -112,7 +116,7 @@ def blocked_adastop(y: np.ndarray, looks: Sequence[int], comparisons: Sequence[t
     y = np.asarray(y, dtype=float)
     n, k = y.shape
     if draws is None:
-        draws = permutation_draws(n, k, permutations, seed)
+        draws = permutation_draws(~np.isnan(y), permutations, seed)
     B = draws.shape[0]
     labels = [label((names[a], names[b])) for a, b in comparisons]
     # per draw, per trial, per treatment: the permuted score; then each comparison's per-trial difference
