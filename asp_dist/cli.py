@@ -15,12 +15,25 @@ import re
 import sys
 from collections.abc import Sequence
 
-from asp_dist.commands import (cell, check_domain, compare, fields, power, query, replay, stats, status, sweep, theory,
-                               tune)
+from asp_dist.commands import (
+    cell,
+    check_domain,
+    compare,
+    decide,
+    fields,
+    power,
+    query,
+    replay,
+    stats,
+    status,
+    sweep,
+    theory,
+    tune,
+)
 from asp_dist.errors import SpecError
 
 # In the order `asp-dist --help` lists them; sweep adds sweep and resume, power adds power and select.
-COMMANDS = (cell, theory, fields, check_domain, sweep, status, tune, replay, stats, compare, query, power)
+COMMANDS = (cell, theory, fields, check_domain, sweep, status, tune, decide, replay, stats, compare, query, power)
 
 
 # A bound of a `type=` helper (asp_dist.commands.common): "argument --seed/-s: must be >= 0" -> "--seed must be >= 0".

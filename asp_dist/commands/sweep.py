@@ -93,9 +93,10 @@ def tracking_settings(args: argparse.Namespace, name: str, defaults: dict | None
     return settings
 
 
-def _interruptible(args: argparse.Namespace, name_of, run) -> int:
+def _interruptible(args: argparse.Namespace, name_of, run, again: str | None = None) -> int:
     """Run a sweep command with SIGTERM behaving as Ctrl-C from its first line on (signals.sigterm_as_interrupt):
-    the sweep stops, its lock and Ray are released, finished cells stay. Exit 128 + the signal."""
+    the sweep stops, its lock and Ray are released, finished cells stay. Exit 128 + the signal. `again`: the
+    command that continues it (default: asp-dist resume NAME)."""
     import signal
 
     from asp_dist.sweep import signals
@@ -113,7 +114,7 @@ def _interruptible(args: argparse.Namespace, name_of, run) -> int:
             hint = ""
             try:
                 if name is not None and store.read_manifest(as_path(args.results) / name) is not None:
-                    hint = f"; finished cells are kept: asp-dist resume {name} --results {args.results}"
+                    hint = f"; finished cells are kept: {again or f'asp-dist resume {name} --results {args.results}'}"
             except (OSError, SpecError):
                 pass
             print(f"asp-dist: interrupted ({signal.Signals(signum).name}){hint}", file=sys.stderr)

@@ -45,8 +45,9 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import CellSpec, coerce_field
 
-# [tune]: asp_dist.sweep.tune_plan; [methods.<name>] and settings: per-method knob values (a tuned.toml)
-SPACE_KEYS = {"description", "include", "fixed", "grid", "logging", "tune", "methods", "settings"}
+# [tune]: asp_dist.sweep.tune_plan; [decide]: asp_dist.sweep.decide_plan; [methods.<name>] and settings:
+# per-method knob values (a tuned.toml)
+SPACE_KEYS = {"description", "include", "fixed", "grid", "logging", "tune", "decide", "methods", "settings"}
 GRID_KEYS = {"name", "fixed", "axes"}
 LOGGING_KEYS = {"loggers", "dir", "mlflow_uri", "wandb_project"}
 # Cells one space may hold, counted before a grid is built: the paper's grid has 1470; a million resolved
