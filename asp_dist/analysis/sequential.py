@@ -51,8 +51,13 @@ class Look:
     decision: dict[str, str]
 
     def as_dict(self) -> dict:
-        return {"trials": self.trials, "statistic": self.statistic, "boundary": self.boundary,
-                "decision": self.decision}
+        """As JSON keeps it: a statistic or boundary that is not a finite number (a comparison decided earlier,
+        a boundary no draw reaches) is None."""
+        def finite(values: dict[str, float]) -> dict[str, float | None]:
+            return {k: (float(v) if np.isfinite(v) else None) for k, v in values.items()}
+
+        return {"trials": self.trials, "statistic": finite(self.statistic), "boundary": finite(self.boundary),
+                "decision": dict(self.decision)}
 
 
 @dataclass(frozen=True)

@@ -89,12 +89,11 @@ class DecidePlan:
         """The trial ids of stages 1..`stage`."""
         return self.trials[:min(stage * self.registration.stage_trials, len(self.trials))]
 
-    def stage_specs(self, stage: int, needed: set[str] | None = None) -> list[CellSpec]:
-        """The cells of stages 1..`stage`: every earlier stage's cells (already trained) and this stage's new
-        trials for the methods in `needed` (None: every method)."""
-        earlier, now = set(self.stage_trials(stage - 1)), set(self.stage_trials(stage)) - set(self.stage_trials(stage - 1))
-        return [s for s in self.specs
-                if s.trial in earlier or (s.trial in now and (needed is None or s.method in needed))]
+    def stage_specs(self, trained: list[set[str]]) -> list[CellSpec]:
+        """The cells of stages 1..len(trained): stage s's new trials for the methods in trained[s - 1] (a method
+        whose comparisons were all decided before stage s trains none of its trials)."""
+        stage_of = {t: i // self.registration.stage_trials for i, t in enumerate(self.trials)}
+        return [s for s in self.specs if stage_of[s.trial] < len(trained) and s.method in trained[stage_of[s.trial]]]
 
     def fingerprint(self) -> str:
         return stable_hash({"registration": self.registration.record(), "grid": grid_hash(self.specs)})[:16]

@@ -125,7 +125,10 @@ def _look_record(plan: DecidePlan, stage: int, look, trained: list[str]) -> dict
 def _same(recorded: dict[str, Any], now: dict[str, Any]) -> bool:
     if recorded.get("decision") != now["decision"] or recorded.get("trials") != now["trials"]:
         return False
-    return all(np.isclose(recorded.get("statistic", {}).get(k, np.nan), v, equal_nan=True)
+    def number(v):
+        return np.nan if v is None else v
+
+    return all(np.isclose(number(recorded.get("statistic", {}).get(k)), number(v), equal_nan=True)
                for k, v in now["statistic"].items())
 
 
@@ -134,6 +137,10 @@ def _write(sweep_dir: AnyPath, plan: DecidePlan, looks: list[dict[str, Any]], fi
               "registration": plan.registration.record(), "grid_cells": len(plan.specs),
               "max_trials": len(plan.trials), "stages": plan.stages, "looks": looks, "finished": finished}
     write_replace(sweep_dir / DECIDE_FILE, json.dumps(record, indent=1))
+
+
+def _fmt(value: float | None) -> str:
+    return "none reached yet" if value is None else f"{value:.4g}"
 
 
 def describe(decision: str, comparison: str) -> str:
@@ -162,7 +169,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
         if stop_after is not None and ran >= stop_after:
             break
         needed = open_treatments(plan, looks)
-        specs = plan.stage_specs(stage, needed)
+        specs = plan.stage_specs([set(look["trained"]) for look in looks] + [needed])
         trials = plan.stage_trials(stage)
         stream.write(f"decide {plan.name}: stage {stage} of at most {plan.stages}: trials {trials[0]}-{trials[-1]} "
                      f"({len(trials)} of {len(plan.trials)}), {', '.join(t for t in reg.treatments if t in needed)}\n")
@@ -192,7 +199,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
         finished = stage >= plan.stages or all(d != CONTINUE for d in last["decision"].values())
         _write(sweep_dir, plan, looks, finished)
         stream.write(f"decide {plan.name}: look {stage} ({last['trials']} trials): " + "; ".join(
-            f"{c}: {d} (|T| {abs(last['statistic'][c]):.4g}, boundary {last['boundary'][c]:.4g})"
+            f"{c}: {d} (|T| {abs(last['statistic'][c]):.4g}, boundary {_fmt(last['boundary'][c])})"
             if d == CONTINUE else describe(d, c) for c, d in last["decision"].items()) + "\n")
     if finished and looks:
         last = looks[-1]
