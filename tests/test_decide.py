@@ -189,3 +189,16 @@ def test_decide_smoke_on_ray_stops_each_comparison_as_registered(tmp_path):
     third = cli("decide", "decide-smoke", "--results", str(results))  # finished: nothing runs, nothing changes
     assert third.returncode == 0 and "embedded Ray" not in third.stderr
     assert (results / "decide-smoke" / DECIDE_FILE).read_text() == (tmp_path / "before.json").read_text()
+
+
+def test_the_report_of_a_decided_sweep_shows_its_looks_and_verdict(tmp_path):
+    from asp_dist.analysis import run_stats
+    from asp_dist.analysis.document import render_markdown
+    from asp_dist.analysis.report import build_report
+
+    plan, results = plan_of(tmp_path), tmp_path / "results"
+    decide(plan, results, FakeRunner(results))
+    text = render_markdown(build_report(run_stats([results / "d"]), tmp_path / "out"))
+    assert ("osp vs osp@twin: **no difference shown**; osp vs osp@broken: **osp better** — ended at the most it may "
+            "use after 18 of 18 trials (1000–1017).") in text
+    assert "| 1 | 6 | 1000–1005 | osp vs osp@broken |" in text and "| 3 | 18 | 1000–1017 | osp vs osp@twin |" in text

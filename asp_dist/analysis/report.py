@@ -22,6 +22,7 @@ from asp_dist.analysis.layout import is_asp, treatment_order
 from asp_dist.analysis.markdown import format_cell
 from asp_dist.analysis.paper import paper_claim
 from asp_dist.analysis.plots import Figure
+from asp_dist.analysis.sequential_report import decide_blocks, read_decisions
 from asp_dist.analysis.tuning import read_configurations, tune_grid, tuning_blocks
 from asp_dist.results.grouping import treatment_label
 
@@ -341,6 +342,7 @@ def build_report(result: StatsResult, out_dir: str | Path, figures: Sequence[Fig
                  "Nemenyi post-hoc are both below α (the paper's procedure); the Wilcoxon signed-rank test with Holm's "
                  "correction is shown as a second view. With two methods, the Wilcoxon test decides. Δ = median paired "
                  "difference ASP − other in metric units; a–t–b = blocks where ASP is better – tied – worse."))
+    doc.add(*decide_blocks(read_decisions(result)))  # only where `asp-dist decide` grew an input
     claims = [f"- {d}: {claim}" + ("" if claim.endswith((".", "?", "!")) else ".")
               for d in sorted(result.layouts) if (claim := paper_claim(d))]
     if claims:

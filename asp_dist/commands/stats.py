@@ -193,6 +193,7 @@ def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command:
     from asp_dist.analysis.latex_tables import write_latex_tables
     from asp_dist.analysis.report import build_report
     from asp_dist.analysis.rliable_plots import plot_rliable
+    from asp_dist.analysis.sequential_report import plot_decisions, read_decisions
     from asp_dist.analysis.tuning import plot_expected_best, plot_tuning, read_configurations
 
     start = time.perf_counter()
@@ -210,6 +211,7 @@ def _stats_job(located, stage: Path, out_dir: Path, cfg, figures: bool, command:
         configs = read_configurations(result)
         figs += plot_tuning(configs, stage / "figures")  # a tune run's search, per method
         figs += plot_expected_best(configs, stage / "figures")  # and its expected best against the budget
+        figs += plot_decisions(read_decisions(result), stage / "figures")  # a decided sweep's looks
         log(f"wrote {len(figs)} figures (PNG + SVG) to {out_dir / 'figures'}")
     doc = build_report(result, stage, figs, notes, sources=[str(p) for p in located], command=command,
                        latex_tables=list(latex))
