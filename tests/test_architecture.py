@@ -1,9 +1,10 @@
 """The package's import graph follows the flow of the work, one way only:
 
-    plugins → cli → analysis → sweep → tracking → results → training → spec → core → data → foundations
+    plugins → cli → study → analysis → sweep → tracking → results → training → spec → core → data → foundations
 
 (foundations: errors, hashing, nn, fsutil, knobs, plugins, method_registry, machine; `cli` is the entry point
-asp_dist.cli and its commands, asp_dist.commands.*, which never import it back; `core` is what a domain plugin is
+asp_dist.cli and its commands, asp_dist.commands.*, which never import it back; `study` the drivers that grow a
+sweep by what its statistics say, asp_dist.study; `core` is what a domain plugin is
 written against, asp_dist.core: the domain contract and registry). A module may import from its own stage or any
 stage below it, never from above, and no two modules import each other, directly or through others.
 Imports under `if TYPE_CHECKING:` (annotations only) count as imports: an annotation that points up a stage
@@ -20,7 +21,7 @@ from __future__ import annotations
 import grimp
 import pytest
 
-STAGES = ["cli", "analysis", "sweep", "tracking", "results", "training", "spec", "core", "data"]
+STAGES = ["cli", "study", "analysis", "sweep", "tracking", "results", "training", "spec", "core", "data"]
 FOUNDATIONS = ["errors", "hashing", "nn", "fsutil", "knobs", "plugins", "method_registry", "machine"]
 PLUGIN_STAGE = -2  # a built-in domain's package: above every stage
 SAME_STAGE = {"commands": "cli"}  # asp_dist.commands.*: the subcommands that asp_dist.cli assembles

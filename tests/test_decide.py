@@ -14,8 +14,8 @@ from harness import cli, finished_row, space
 
 from asp_dist.errors import SweepError
 from asp_dist.results import store
-from asp_dist.sweep.decide_plan import DecidePlan
-from asp_dist.sweep.decide_run import DECIDE_FILE, check_record, read_record, run_decide
+from asp_dist.study.decide_plan import DecidePlan
+from asp_dist.study.decide_run import DECIDE_FILE, check_record, read_record, run_decide
 from asp_dist.sweep.ledger import SweepResult
 from asp_dist.sweep.plan import RunOptions
 from asp_dist.sweep.preflight import check_manifest

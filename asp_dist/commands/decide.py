@@ -1,5 +1,5 @@
 """`asp-dist decide`: a sweep grown stage by stage until its registered comparisons are decided
-(asp_dist.sweep.decide_run); the registration and the flags are checked before Ray is imported."""
+(asp_dist.study.decide_run); the registration and the flags are checked before Ray is imported."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from asp_dist.commands.common import int_between
 def cmd_decide(args: argparse.Namespace) -> int:
     from asp_dist.commands.common import check_data
     from asp_dist.commands.sweep import _interruptible, _run_options, check_run_flags, tracking_settings
-    from asp_dist.sweep.decide_plan import DecidePlan
-    from asp_dist.sweep.decide_run import check_record, read_record
+    from asp_dist.study.decide_plan import DecidePlan
+    from asp_dist.study.decide_run import check_record, read_record
     from asp_dist.sweep.ledger import sweep_dir_for
 
     name: list[str] = []
@@ -28,7 +28,7 @@ def cmd_decide(args: argparse.Namespace) -> int:
             from asp_dist.sweep.preflight import check_address
 
             check_address(args.address, args.connect_timeout)
-        from asp_dist.sweep.decide_run import run_decide
+        from asp_dist.study.decide_run import run_decide
 
         result = run_decide(plan, _run_options(args, tracking), stop_after=args.stages)
         if not result.complete:

@@ -270,7 +270,7 @@ def check_manifest_shape(manifest: dict[str, Any], where: AnyPath) -> None:
 
 # What asp-dist tune (asp_dist.sweep.tuning) keeps in its run's directory: its plan, every configuration tried
 TUNE_PLAN_FILE, TUNE_CONFIGURATIONS = "tune-plan.json", "configurations.parquet"
-DECIDE_FILE = "decide.json"  # asp_dist.sweep.decide_run: a decided sweep's registration and looks
+DECIDE_FILE = "decide.json"  # asp_dist.study.decide_run: a decided sweep's registration and looks
 
 
 def read_sweep(results: str | AnyPath, name: str) -> tuple[AnyPath, dict[str, Any]]:

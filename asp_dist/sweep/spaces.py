@@ -45,7 +45,7 @@ from asp_dist.errors import SpecError, SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import CellSpec, coerce_field
 
-# [tune]: asp_dist.sweep.tune_plan; [decide]: asp_dist.sweep.decide_plan; [methods.<name>] and settings:
+# [tune]: asp_dist.sweep.tune_plan; [decide]: asp_dist.study.decide_plan; [methods.<name>] and settings:
 # per-method knob values (a tuned.toml)
 SPACE_KEYS = {"description", "include", "fixed", "grid", "logging", "tune", "decide", "methods", "settings"}
 GRID_KEYS = {"name", "fixed", "axes"}
