@@ -60,8 +60,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("tune", help="tune every method of a tune space on the same budget (Ray Tune search)",
                        description="Search each method's knobs ([tune] of the space: budget, search, seed, metric, "
                                    "scheduler, ranges) on the space's calibration cells, the same number of "
-                                   "configurations for every method. Resumable: run the same command again after a stop. Writes "
-                                   "the cells' rows, configurations.parquet and tuned.toml under DIR/NAME.")
+                                   "configurations for every method; then train each method's default and its top_k "
+                                   "best on the validation trials and choose there (top_k = 0: the search's best). "
+                                   "Resumable: run the same command again after a stop. Writes the cells' rows, "
+                                   "configurations.parquet (both stages) and tuned.toml under DIR/NAME.")
     p.add_argument("space", help="a tune space: tune_spaces/<name>.toml or a path")
     p.add_argument("--name", type=non_empty, help="the tune run's name (default: the space's)")
     add_results(p)
