@@ -1,12 +1,22 @@
 """Error rates and power of the sequential tests (asp_dist.analysis.sequential) by simulation on committed rows.
 
     python bench/sequential_error.py [--studies confirm-levers confirm-tuned-particles ...] [--sims 1000]
-        [--seed 0] [--max-trials 30 60] [--aa SWEEP_DIR] [--out docs/bench-results/sequential-error-<date>.json]
+        [--seed 0] [--max-trials 30 60] [--modes shuffle shift shift-mean effect] [--aa SWEEP_DIR]
+        [--out docs/bench-results/sequential-error-<date>.json] [--merge]
+
+The committed figures ran one study and two modes a command (each under 3 minutes on two loaded cores), merged:
+    for s in confirm-levers confirm-particles confirm-tuned-levers confirm-tuned-particles \
+             confirm-validated-levers confirm-vae; do
+      python bench/sequential_error.py --studies $s --modes shuffle shift --merge
+      python bench/sequential_error.py --studies $s --modes shift-mean effect --merge
+    done
+A smoke check of --aa before an A/A sweep exists (not a figure): synthetic_aa() below writes one method's rows
+twice, the copy's trials rotated by one, e.g. to /tmp/aa.parquet; then --studies --aa /tmp/aa.parquet --sims 100.
 
 Each simulated run is a registration like the real ones: comparisons "asp vs osp" and "asp vs pc", alpha 0.05,
 stages of 5 trials, at most 30 or 60 trials, run as the decide loop runs it: after each stage the test looks at
 every trial so far, and a treatment whose comparisons are all decided trains no later trial (its later trials
-are NaN, so blocked-adastop permutes among the treatments a trial has). Its trials are drawn with replacement
+are NaN: with the rank statistic the others are ranked among themselves). Its trials are drawn with replacement
 from a study's complete trials (each with all its blocks in the paper's paired range); the same draw serves
 every mode, test and size of one simulation (a 30-trial run uses the first 30 of the 60 drawn).
 
@@ -15,7 +25,10 @@ Modes:
               alike): the treatments are exchangeable within a trial, the null the permutation test is exact for
     shift     each treatment's scores shifted by the median over the study's trials of ASP's per-trial
               difference from it (per-trial score: the mean over the trial's blocks), so those medians are zero:
-              a null in the median that is not exchangeable (spreads and shapes still differ): robustness
+              a null in the median that is not exchangeable (spreads and shapes still differ): robustness. Where
+              the differences are skewed their mean is not zero, and a test of the mean is right to reject
+    shift-mean  the same with the mean difference: zero mean, not exchangeable (the mean statistic's null
+              without the permutation test's assumption)
     effect    the rows as they are: power and the trials a run takes
     aa        (--aa) an A/A sweep's rows, one method under two names: a null by construction
 
@@ -227,19 +240,30 @@ def study_seed(name: str) -> int:
     return zlib.crc32(name.encode())
 
 
-def modes_of(study: Study, aa: bool) -> dict[str, np.ndarray | None]:
+MODES = ("shuffle", "shift", "shift-mean", "effect")
+
+
+def modes_of(study: Study, aa: bool, chosen: Sequence[str] = MODES) -> dict[str, np.ndarray | None]:
     if aa:
         return {"aa": None}
     y = study.blocks.mean(axis=1)  # trials x treatments
     ia = study.treatments.index("asp")
-    shift = np.array([np.median(y[:, ia] - y[:, j]) for j in range(len(study.treatments))])
-    return {"shuffle": None, "shift": study.blocks + shift[None, None, :], "effect": None}
+    out: dict[str, np.ndarray | None] = {}
+    for mode in chosen:
+        if mode in ("shift", "shift-mean"):
+            centre = np.median if mode == "shift" else np.mean
+            shift = np.array([centre(y[:, ia] - y[:, j]) for j in range(len(study.treatments))])
+            out[mode] = study.blocks + shift[None, None, :]
+        else:
+            out[mode] = None
+    return out
 
 
 def simulate(study: Study, sims: int, seed: int, max_sizes: Sequence[int], variants, permutations: int,
-             alpha: float, beta: float, stage: int, aa: bool = False, log=print) -> list[dict]:
+             alpha: float, beta: float, stage: int, aa: bool = False, modes: Sequence[str] = MODES,
+             log=print) -> list[dict]:
     """Every mode x variant x size's tallies over `sims` runs of one study."""
-    modes = modes_of(study, aa)
+    modes = modes_of(study, aa, modes)
     labels = [label(c) for c in study.comparisons]
     n_max, k = max(max_sizes), len(study.treatments)
     tallies: dict[tuple, dict] = {}
@@ -314,17 +338,18 @@ def aa_study(path: str) -> Study:
 
 
 def table(results: list[dict]) -> str:
-    lines = [f"{'study':<26}{'mode':<8}{'test':<22}{'max':>4}{'runs':>6}{'any decided':>22}"
-             f"{'larger per comparison':>30}{'trials mean/median':>20}{'cells':>7}"]
+    header = (f"{'study':<30}{'mode':<11}{'test':<24}{'max':>4}{'runs':>6}{'any decided [95 % CI]':>26}"
+              f"{'larger/smaller per comparison':>40}{'trials mean/median':>20}{'cells':>7}")
+    lines = [header]
     for r in results:
-        name = r["test"] if r["test"] == "e-value" or r["test"] == "fixed" else f"adastop-{r['statistic']}"
-        if r["test"] == "fixed":
-            name = f"fixed ({r['statistic']})"
+        name = (f"fixed ({r['statistic']})" if r["test"] == "fixed"
+                else "e-value" if r["test"] == "e-value" else f"adastop-{r['statistic']}")
         lo, hi = r["ci95"]
-        larger = " ".join(f"{v[LARGER]:.3f}" for v in r["per_comparison"].values())
-        lines.append(f"{r['study']:<26}{r['mode']:<8}{name:<22}{r['max_trials']:>4}{r['runs']:>6}"
-                     f"{r['any_decided_rate']:>8.3f} [{lo:.3f}, {hi:.3f}]{larger:>30}"
-                     f"{r['trials_at_stop_mean']:>12.1f} / {r['trials_at_stop_median']:<5.0f}{r['cells_fraction_mean']:>7.2f}")
+        split = "  ".join(f"{v[LARGER]:.3f}/{v[SMALLER]:.3f}" for v in r["per_comparison"].values())
+        lines.append(f"{r['study'][:29]:<30}{r['mode']:<11}{name:<24}{r['max_trials']:>4}{r['runs']:>6}"
+                     f"{r['any_decided_rate']:>10.3f} [{lo:.3f}, {hi:.3f}]{split:>40}"
+                     f"{r['trials_at_stop_mean']:>12.1f} / {r['trials_at_stop_median']:<5.0f}"
+                     f"{r['cells_fraction_mean']:>7.2f}")
     return "\n".join(lines)
 
 
@@ -340,10 +365,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--alpha", type=float, default=0.05)
     ap.add_argument("--beta", type=float, default=0.0)
     ap.add_argument("--permutations", type=int, default=2000)
-    ap.add_argument("--modes", nargs="+", default=None, help="a subset of shuffle shift effect")
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--out", default=f"docs/bench-results/sequential-error-{dt.date.today().isoformat()}.json")
     ap.add_argument("--merge", action="store_true",
-                    help="keep the results already in --out of studies not run now (a long bench run in parts)")
+                    help="keep the results already in --out of the (study, mode)s not run now (a long run in parts)")
     args = ap.parse_args(argv)
     results = []
     for name in args.studies:
@@ -351,9 +376,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{name}: {study.domain} ({study.condition}), paired {study.paired[0]}-{study.paired[1]}, "
               f"{len(study.trials)} trials x {study.blocks.shape[1]} blocks, treatments {study.treatments}"
               + (f"; left out (incomplete): {study.dropped_trials}" if study.dropped_trials else ""), flush=True)
-        out = simulate(study, args.sims, args.seed, args.max_trials, VARIANTS, args.permutations, args.alpha,
-                       args.beta, args.stage, log=lambda s: print(s, flush=True))
-        results += [r for r in out if args.modes is None or r["mode"] in args.modes]
+        results += simulate(study, args.sims, args.seed, args.max_trials, VARIANTS, args.permutations, args.alpha,
+                            args.beta, args.stage, modes=args.modes, log=lambda s: print(s, flush=True))
     if args.aa:
         study = aa_study(args.aa)
         print(f"{study.name}: {study.treatments}, {len(study.trials)} trials x {study.blocks.shape[1]} blocks", flush=True)
@@ -366,8 +390,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               "comparisons": [label(c) for c in COMPARISONS], "results": results}
     if args.merge and out_path.exists():
         old = json.loads(out_path.read_text())
-        ran = {r["study"] for r in results}
-        record["results"] = [r for r in old.get("results", []) if r["study"] not in ran] + results
+        ran = {(r["study"], r["mode"]) for r in results}
+        record["results"] = [r for r in old.get("results", []) if (r["study"], r["mode"]) not in ran] + results
         record["commands"] = old.get("commands", [old.get("command")]) + [record["command"]]
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(record, indent=1) + "\n")

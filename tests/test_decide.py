@@ -32,14 +32,14 @@ trial = {{ first = 1000, last = {last} }}
 DECIDE = """
 [decide]
 compare = ["osp vs osp@twin", "osp vs osp@broken"]
-stage_trials = 6
+stage_trials = 8
 permutations = 2000
 """
 HIGHER = json.dumps({"mixed": "higher"})
 
 
 def plan_of(tmp_path: Path, decide: str = DECIDE, methods: str = '["osp", "osp@twin", "osp@broken"]',
-            last: int = 1017) -> DecidePlan:
+            last: int = 1023) -> DecidePlan:
     return DecidePlan.from_space(space(tmp_path, GRID.format(methods=methods, last=last) + decide, "d.toml"), "d")
 
 
@@ -84,7 +84,7 @@ def test_a_clear_difference_is_decided_at_the_first_look_and_its_loser_trains_no
     assert [look["stage"] for look in looks] == [1, 2, 3] and result.finished
     assert looks[-1]["decision"]["osp vs osp@twin"] == "equal"  # two copies of one method: the most it may use
     broken = {s.cell_id for s in plan.specs if s.method == "osp@broken"}
-    stage_one = {s.cell_id for s in plan.specs if s.method == "osp@broken" and s.trial <= 1005}
+    stage_one = {s.cell_id for s in plan.specs if s.method == "osp@broken" and s.trial <= 1007}
     assert set(runner.calls[-1]) & broken == stage_one  # the decided loser trained stage 1 only
     assert json.loads((results / "d" / DECIDE_FILE).read_text())["looks"] == looks
     again = FakeRunner(results)
@@ -121,8 +121,8 @@ def test_a_changed_registration_or_grid_is_refused_once_a_stage_has_run(tmp_path
     decide(plan, results, FakeRunner(results), stop_after=1)
     record = read_record(results / "d")
     assert check_record(plan, record) == record["looks"]
-    for other in (plan_of(tmp_path, DECIDE.replace("stage_trials = 6", "stage_trials = 3")),
-                  plan_of(tmp_path, last=1023)):
+    for other in (plan_of(tmp_path, DECIDE.replace("stage_trials = 8", "stage_trials = 12")),
+                  plan_of(tmp_path, last=1031)):
         with pytest.raises(SweepError, match="cannot change once a stage has run"):
             check_record(other, record)
 
@@ -135,9 +135,10 @@ def test_a_changed_registration_or_grid_is_refused_once_a_stage_has_run(tmp_path
     ('compare = ["osp vs osp@twin"]', "in no comparison"),
     ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\nalpha = 0.7', "alpha = 0.7 is out of range"),
     ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\ntest = "t-test"', "test must be one of"),
-    ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\nstage_trials = 40', "more than the grid's 18 trials"),
+    ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\nstage_trials = 40', "more than the grid's 24 trials"),
     ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\npaired = { first = 16, last = 32 }', "holds none"),
     ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\ntest = "e-value"\nbeta = 0.1', "needs test"),
+    ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\nstage_trials = 5', "cannot decide at the first look"),
     ('compare = ["osp vs osp@twin", "osp vs osp@broken"]\nstages = 3', "unknown key(s) stages"),
 ])
 def test_a_bad_registration_is_one_line(tmp_path, table, message):
@@ -155,16 +156,16 @@ def test_a_decided_verdict_is_on_fresh_trials_and_needs_a_registration(tmp_path)
 
 
 def test_the_stages_partition_the_grid(tmp_path):
-    plan = plan_of(tmp_path, last=1016)  # 17 trials in stages of 6: 6, 12, 17
-    assert plan.stages == 3 and [len(plan.stage_trials(s)) for s in (1, 2, 3)] == [6, 12, 17]
-    assert plan.stage_trials(3) == tuple(range(1000, 1017))
+    plan = plan_of(tmp_path, last=1020)  # 21 trials in stages of 8: 8, 16, 21
+    assert plan.stages == 3 and [len(plan.stage_trials(s)) for s in (1, 2, 3)] == [8, 16, 21]
+    assert plan.stage_trials(3) == tuple(range(1000, 1021))
     every = {"osp", "osp@twin", "osp@broken"}
     assert {s.cell_id for s in plan.stage_specs([every] * 3)} == {s.cell_id for s in plan.specs}
     later = {"osp", "osp@twin"}
     specs = plan.stage_specs([every, later, later])  # the broken copy decided at the first look
-    assert {s.trial for s in specs if s.method == "osp@broken"} == set(range(1000, 1006))
-    assert {s.trial for s in specs if s.method == "osp@twin"} == set(range(1000, 1017))
-    assert {s.trial for s in plan.stage_specs([every, later])} == set(range(1000, 1012))
+    assert {s.trial for s in specs if s.method == "osp@broken"} == set(range(1000, 1008))
+    assert {s.trial for s in specs if s.method == "osp@twin"} == set(range(1000, 1021))
+    assert {s.trial for s in plan.stage_specs([every, later])} == set(range(1000, 1016))
 
 
 @pytest.mark.slow
@@ -182,9 +183,9 @@ def test_decide_smoke_on_ray_stops_each_comparison_as_registered(tmp_path):
     assert record["finished"] and record["looks"][-1]["decision"] == {"osp vs osp@twin": "equal",
                                                                       "osp vs osp@broken": "larger"}
     rows = store.read_rows(results / "decide-smoke")
-    assert sorted(rows[rows["method"] == "osp@broken"]["trial"].unique()) == list(range(1000, 1006))
-    assert len(rows) == 36 + 24  # stage 2 trained osp and its twin only
-    assert "ended at the most it may use, 12 of 12 trials" in second.stderr
+    assert sorted(rows[rows["method"] == "osp@broken"]["trial"].unique()) == list(range(1000, 1008))
+    assert len(rows) == 48 + 32  # stage 2 trained osp and its twin only
+    assert "ended at the most it may use, 16 of 16 trials" in second.stderr
     shutil.copy(results / "decide-smoke" / DECIDE_FILE, tmp_path / "before.json")
     third = cli("decide", "decide-smoke", "--results", str(results))  # finished: nothing runs, nothing changes
     assert third.returncode == 0 and "embedded Ray" not in third.stderr
@@ -200,5 +201,5 @@ def test_the_report_of_a_decided_sweep_shows_its_looks_and_verdict(tmp_path):
     decide(plan, results, FakeRunner(results))
     text = render_markdown(build_report(run_stats([results / "d"]), tmp_path / "out"))
     assert ("osp vs osp@twin: **no difference shown**; osp vs osp@broken: **osp better** — ended at the most it may "
-            "use after 18 of 18 trials (1000–1017).") in text
-    assert "| 1 | 6 | 1000–1005 | osp vs osp@broken |" in text and "| 3 | 18 | 1000–1017 | osp vs osp@twin |" in text
+            "use after 24 of 24 trials (1000–1023).") in text
+    assert "| 1 | 8 | 1000–1007 | osp vs osp@broken |" in text and "| 3 | 24 | 1000–1023 | osp vs osp@twin |" in text

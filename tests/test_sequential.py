@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from asp_dist.analysis.sequential import (CONTINUE, EQUAL, LARGER, SMALLER, blocked_adastop, e_value, label,
+from asp_dist.analysis.sequential import (CONTINUE, EQUAL, LARGER, SMALLER, blocked_adastop, e_value,
                                           permutation_draws, run_test, trial_scores)
 
 NAMES = ["pc", "osp", "asp"]
@@ -129,6 +129,29 @@ def test_the_stronger_comparison_is_decided_first_and_the_weaker_later():
     assert first.boundary[AP] >= first.boundary[AO]  # step-down: the rest are held to a boundary no higher
 
 
+def test_two_looks_boundaries_match_a_hand_computation_from_the_draws():
+    """One comparison, looks at 20 and 40 of 2 planned: alpha/2 spent at the first, the rest at the second among
+    the draws the first did not stop (AdaStop's conditioning). (20 trials: 2^20 relabellings, so 400 draws hold
+    no ties, where the rule counts a tied draw at the boundary as above it: conservative.)"""
+    rng = np.random.default_rng(12)
+    y = rng.normal(size=(40, 2))
+    y[:, 1] += 0.3
+    B, alpha = 400, 0.05
+    draws = permutation_draws(np.ones((40, 2), dtype=bool), B, seed=3)
+    sign = np.where(draws[:, :, 1] == 1, 1.0, -1.0)  # a relabelled trial's difference is +-(asp - osp)
+    sums = np.cumsum(sign * (y[:, 1] - y[:, 0]), axis=1)
+    t1, t2 = np.abs(sums[:, 19]), np.abs(sums[:, 39])
+    assert len(np.unique(t1)) == B and len(np.unique(t2)) == B
+    b1 = min(v for v in t1 if (t1 > v).sum() / B <= alpha / 2)
+    spent, alive = (t1 > b1).sum() / B, t1 <= b1
+    b2 = min(v for v in t2[alive] if spent + (t2[alive] > v).sum() / B <= alpha)
+    result = blocked_adastop(y, [20, 40], [(1, 0)], ["osp", "asp"], 2, alpha, permutations=B, seed=3)
+    assert result.looks[0].decision[AO] == CONTINUE
+    assert result.looks[0].boundary[AO] == pytest.approx(b1)
+    assert result.looks[1].boundary[AO] == pytest.approx(b2)
+    assert result.decisions[AO] == (LARGER if t2[0] > b2 else EQUAL)
+
+
 def test_beta_lets_an_exactly_null_comparison_stop_equal_early_and_beta_zero_does_not():
     y = noise(40, 6, k=2)
     size = np.random.default_rng(6).uniform(0.5, 2.0, size=20)
@@ -141,15 +164,33 @@ def test_beta_lets_an_exactly_null_comparison_stop_equal_early_and_beta_zero_doe
     assert [l.decision[AO] for l in never.looks] == [CONTINUE] * 3 + [EQUAL]
 
 
-def test_a_dropped_column_leaves_earlier_looks_and_the_open_comparisons_statistic_alone():
-    """pc is not trained after asp vs pc is decided. What holds exactly: every look up to the drop is as with pc
-    present, and asp vs osp's statistic is the same at every look (its null distribution does change: the
-    permutations are among two treatments instead of three, so its later decisions may differ)."""
+def test_a_comparisons_null_does_not_involve_a_third_treatments_scores():
+    """Each comparison's relabellings swap its own two treatments only (as AdaStop permutes within a pair): the
+    scores of a treatment it does not compare change nothing of its statistic, boundary or decision."""
+    y = noise(30, 8)
+    y[:, 2] += 0.7
+    other = y.copy()
+    other[:, 0] = 1000 * noise(30, 80)[:, 0]  # pc anywhere, with any spread
+    pairs = [(2, 1)]  # asp vs osp only
+    first, second = (adastop(v, pairs=pairs, seed=4) for v in (y, other))
+    assert [l.as_dict() for l in first.looks] == [l.as_dict() for l in second.looks]
+
+
+def test_a_dropped_column_leaves_earlier_looks_and_the_open_comparison_alone():
+    """pc is not trained after asp vs pc is decided. Every look up to the drop is as with pc trained; later,
+    pc's scores (whatever they are) do not enter asp vs osp. With pc NaN the trial's draws are permutations of
+    the two treatments it has, other draws than with three: the same null, not the same numbers."""
     y = noise(30, 9)
     y[:, 2] += 0.4
     y[:, 0] -= 30.0
     full = adastop(y, stage=10, seed=1)
-    assert full.decided_at()[AP] == 10
+    assert full.decided_at()[AP] == 10 and full.decided_at()[AO] != 10
+    scrambled = y.copy()
+    scrambled[10:, 0] = 500 * noise(20, 90)[:, 0]  # anything after the drop
+    assert [l.as_dict()["decision"] for l in adastop(scrambled, stage=10, seed=1).looks] == \
+        [l.decision for l in full.looks]
+    assert [l.boundary[AO] for l in adastop(scrambled, stage=10, seed=1).looks] == \
+        [l.boundary[AO] for l in full.looks]
     thinned = y.copy()
     thinned[10:, 0] = np.nan
     part = adastop(thinned, stage=10, seed=1)
@@ -202,6 +243,7 @@ def test_e_value_rejects_a_steady_effect_in_its_direction():
     y[:, 2] += 3.0
     result = e_value(y, looks(60, 5), PAIRS, NAMES, 12)
     assert result.decisions == {AO: LARGER, AP: LARGER}
+    assert result.looks[0].boundary[AO] == pytest.approx(math.log(2 / 0.05))  # Bonferroni over 2 comparisons
     y[:, 2] -= 6.0
     assert e_value(y, looks(60, 5), PAIRS, NAMES, 12).decisions == {AO: SMALLER, AP: SMALLER}
 

@@ -11,9 +11,12 @@ Two tests, chosen between by measurement (bench/sequential_error.py, docs/decisi
 
     blocked-adastop   AdaStop (Mathieu et al. 2023) on blocks: the statistic of comparison (a, b) is the sum
                       over trials of y[a] - y[b]; its null distribution is that of the same sum with the
-                      treatments' labels permuted *within each trial* (exact under H0: the compared treatments
-                      are exchangeable within a trial), from `permutations` draws fixed by `seed` for every
-                      trial the registration may add. Alpha is spent linearly over the `looks` planned (alpha
+                      labels of a and b swapped or not *within each trial* (a swap when the trial's draw puts
+                      them in the other order: the sign of its difference flips), from `permutations` draws
+                      fixed by `seed` for every trial the registration may add. As AdaStop permutes within
+                      each comparison's pair, a comparison's null involves its two treatments alone, so it is
+                      exact under its own H0 (a and b exchangeable within a trial) whatever the other
+                      treatments score. Alpha is spent linearly over the `looks` planned (alpha
                       * k / K at look k); at each look the undecided comparisons are tested step-down on the
                       max-|T| statistic over the draws not stopped at an earlier look (AdaStop's conditioning),
                       which controls the family-wise error in the strong sense. With beta > 0 a comparison may
@@ -119,14 +122,17 @@ def blocked_adastop(y: np.ndarray, looks: Sequence[int], comparisons: Sequence[t
                     seed: int = 0, draws: np.ndarray | None = None) -> SequentialResult:
     """The blocked AdaStop test at each of `looks` (trial counts) of `planned_looks`; see the module doc."""
     y = np.asarray(y, dtype=float)
-    n, k = y.shape
+    n = y.shape[0]
     if draws is None:
         draws = permutation_draws(~np.isnan(y), permutations, seed)
     B = draws.shape[0]
     labels = [label((names[a], names[b])) for a, b in comparisons]
-    # per draw, per trial, per treatment: the permuted score; then each comparison's per-trial difference
-    permuted = np.take_along_axis(np.broadcast_to(y, (B, n, k)), draws[:, :n, :].astype(np.intp), axis=2)
-    diffs = np.stack([permuted[:, :, a] - permuted[:, :, b] for a, b in comparisons], axis=2)  # B x n x m
+    # per draw, per trial, per comparison: the difference, its sign flipped where the draw swaps the pair's order.
+    # (Permuting all the treatments would put a third one's scores into the comparison's null: not exact under
+    # its H0, and far too wide where that treatment is far off.)
+    order = np.argsort(draws[:, :n, :], axis=2)  # where each treatment's score goes
+    diffs = np.stack([np.where((order[:, :, a] < order[:, :, b]) == (a < b), 1.0, -1.0) * (y[:, a] - y[:, b])
+                      for a, b in comparisons], axis=2)  # B x n x m
     cums = np.cumsum(diffs, axis=1)
     alive = np.ones(B, dtype=bool)  # draws not stopped at an earlier look (AdaStop's conditioning)
     open_ = list(range(len(comparisons)))

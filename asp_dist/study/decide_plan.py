@@ -147,6 +147,13 @@ class DecidePlan:
                              f"({', '.join(map(str, paired))})")
         if reg.stage_trials > len(trials):
             raise SweepError(f"{label}: stage_trials = {reg.stage_trials} is more than the grid's {len(trials)} trials")
+        looks = math.ceil(len(trials) / reg.stage_trials)
+        if reg.test == "blocked-adastop" and 2.0 ** (1 - reg.stage_trials) > reg.alpha / looks:
+            # a look on n trials has 2^n sign patterns: its smallest two-sided p is 2 / 2^n
+            least = next(n for n in range(2, 64) if 2.0 ** (1 - n) <= reg.alpha / math.ceil(len(trials) / n))
+            raise SweepError(f"{label}: stage_trials = {reg.stage_trials} cannot decide at the first look (its "
+                             f"smallest p, 2/2^{reg.stage_trials}, is above alpha / {looks} looks); use at least "
+                             f"{least}")
         return cls(name, space, reg, domains[0], specs, trials, space_text, logging or {})
 
 

@@ -23,8 +23,8 @@ from asp_dist.analysis.sequential import CONTINUE, LARGER, SMALLER, SequentialRe
 from asp_dist.errors import SweepError
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, write_replace
-from asp_dist.sweep import ledger
 from asp_dist.study.decide_plan import DecidePlan
+from asp_dist.sweep import ledger
 from asp_dist.sweep.plan import Plan, RunOptions
 
 DECIDE_FILE = ledger.DECIDE_FILE
