@@ -123,12 +123,11 @@ def _look_record(plan: DecidePlan, stage: int, look, trained: list[str]) -> dict
 
 
 def _same(recorded: dict[str, Any], now: dict[str, Any]) -> bool:
+    """Whether a recomputed look equals its record (decisions exactly, statistics to float precision)."""
     if recorded.get("decision") != now["decision"] or recorded.get("trials") != now["trials"]:
         return False
-    def number(v):
-        return np.nan if v is None else v
-
-    return all(np.isclose(number(recorded.get("statistic", {}).get(k)), number(v), equal_nan=True)
+    old = recorded.get("statistic", {})
+    return all(np.isclose(np.nan if old.get(k) is None else old[k], np.nan if v is None else v, equal_nan=True)
                for k, v in now["statistic"].items())
 
 
@@ -205,7 +204,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
         last = looks[-1]
         left = len(plan.trials) - last["trials"]
         saved = f"; the grid's other {left} trials were not started" if left else ""
-        decided = all(d != CONTINUE and d in (LARGER, SMALLER) for d in last["decision"].values())
+        decided = all(d in (LARGER, SMALLER) for d in last["decision"].values())
         how = "decided after" if decided else "ended at the most it may use,"
         stream.write(f"decide {plan.name}: {how} {last['trials']} of {len(plan.trials)} trials: "
                      + "; ".join(describe(d, c) for c, d in last["decision"].items()) + saved + "\n")
