@@ -12,7 +12,7 @@ def cmd_decide(args: argparse.Namespace) -> int:
     from asp_dist.commands.common import check_data
     from asp_dist.commands.sweep import _interruptible, _run_options, check_run_flags, tracking_settings
     from asp_dist.study.decide_plan import DecidePlan
-    from asp_dist.study.decide_run import check_record, read_record
+    from asp_dist.study.decide_run import DECIDE_FILE, check_record, read_record
     from asp_dist.sweep.ledger import sweep_dir_for
 
     name: list[str] = []
@@ -33,7 +33,7 @@ def cmd_decide(args: argparse.Namespace) -> int:
         result = run_decide(plan, _run_options(args, tracking), stop_after=args.stages)
         if not result.complete:
             return 1
-        print(f"  the looks: {result.sweep_dir / 'decide.json'}; the report: asp-dist stats {result.sweep_dir}")
+        print(f"  the looks: {result.sweep_dir / DECIDE_FILE}; the report: asp-dist stats {result.sweep_dir}")
         return 0
 
     again = "run the same asp-dist decide command again to continue"

@@ -36,7 +36,7 @@ from asp_dist.analysis.sequential import STATISTICS, TESTS
 from asp_dist.errors import SweepError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import CellSpec
-from asp_dist.sweep.spaces import expand, grid_hash, read_space_toml, space_file
+from asp_dist.sweep.spaces import expand, grid_hash, read_space_toml, space_file, space_logging
 
 DECIDE_KEYS = {"compare", "metric", "paired", "test", "statistic", "alpha", "beta", "stage_trials", "permutations",
                "seed"}
@@ -83,7 +83,7 @@ class DecidePlan:
 
     @property
     def stages(self) -> int:
-        return math.ceil(len(self.trials) / self.registration.stage_trials)
+        return looks_for(len(self.trials), self.registration.stage_trials)
 
     def stage_trials(self, stage: int) -> tuple[int, ...]:
         """The trial ids of stages 1..`stage`."""
@@ -100,8 +100,6 @@ class DecidePlan:
 
     @classmethod
     def from_space(cls, space: str, name: str | None = None) -> "DecidePlan":
-        from asp_dist.sweep.spaces import space_logging
-
         path = space_file(space)
         label = path.stem
         table = read_space_toml(path).get("decide")
@@ -147,14 +145,24 @@ class DecidePlan:
                              f"({', '.join(map(str, paired))})")
         if reg.stage_trials > len(trials):
             raise SweepError(f"{label}: stage_trials = {reg.stage_trials} is more than the grid's {len(trials)} trials")
-        looks = math.ceil(len(trials) / reg.stage_trials)
-        if reg.test == "blocked-adastop" and 2.0 ** (1 - reg.stage_trials) > reg.alpha / looks:
-            # a look on n trials has 2^n sign patterns: its smallest two-sided p is 2 / 2^n
-            least = next(n for n in range(2, 64) if 2.0 ** (1 - n) <= reg.alpha / math.ceil(len(trials) / n))
+        if reg.test == "blocked-adastop" and not first_look_can_decide(reg.stage_trials, len(trials), reg.alpha):
+            looks = looks_for(len(trials), reg.stage_trials)
+            least = next(n for n in range(2, 64) if first_look_can_decide(n, len(trials), reg.alpha))
             raise SweepError(f"{label}: stage_trials = {reg.stage_trials} cannot decide at the first look (its "
                              f"smallest p, 2/2^{reg.stage_trials}, is above alpha / {looks} looks); use at least "
                              f"{least}")
         return cls(name, space, reg, domains[0], specs, trials, space_text, logging or {})
+
+
+def looks_for(trials: int, stage_trials: int) -> int:
+    """The looks a registration plans: one after each stage, the last stage perhaps shorter."""
+    return math.ceil(trials / stage_trials)
+
+
+def first_look_can_decide(stage_trials: int, trials: int, alpha: float) -> bool:
+    """Whether blocked-adastop's first look can pass: on n trials it has 2^n sign patterns, so its smallest
+    two-sided p is 2 / 2^n, and the first look spends alpha / looks."""
+    return 2.0 ** (1 - stage_trials) <= alpha / looks_for(trials, stage_trials)
 
 
 def _number(table: dict, key: str, default, kind, lo, hi, label: str):

@@ -19,7 +19,7 @@ from typing import Any, TextIO
 import numpy as np
 import pandas as pd
 
-from asp_dist.analysis.sequential import CONTINUE, LARGER, SMALLER, SequentialResult, run_test, trial_scores
+from asp_dist.analysis.sequential import CONTINUE, LARGER, SMALLER, SequentialResult, label, run_test, trial_scores
 from asp_dist.errors import SweepError
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, write_replace
@@ -37,10 +37,6 @@ class DecideResult:
     looks: list[dict[str, Any]]
     finished: bool          # every comparison decided, or the grid's last trial run
     complete: bool          # every started stage's cells have rows (False: a cell failed; run again)
-
-    @property
-    def verdict(self) -> dict[str, str]:
-        return dict(self.looks[-1]["decision"]) if self.looks else {}
 
 
 def read_record(sweep_dir: AnyPath) -> dict[str, Any] | None:
@@ -74,8 +70,13 @@ def check_record(plan: DecidePlan, record: dict[str, Any] | None) -> list[dict[s
 def open_treatments(plan: DecidePlan, looks: list[dict[str, Any]]) -> set[str]:
     """The treatments of the comparisons still open after the last look (all before the first)."""
     decision = looks[-1]["decision"] if looks else {}
-    return {t for a, b in plan.registration.compare for t in (a, b)
-            if decision.get(f"{a} vs {b}", CONTINUE) == CONTINUE}
+    return {t for pair in plan.registration.compare for t in pair if decision.get(label(pair), CONTINUE) == CONTINUE}
+
+
+def is_finished(plan: DecidePlan, looks: list[dict[str, Any]]) -> bool:
+    """Whether the recorded looks end the run: every comparison decided, or the last stage judged."""
+    return bool(looks) and (looks[-1]["stage"] >= plan.stages
+                            or all(d != CONTINUE for d in looks[-1]["decision"].values()))
 
 
 def stage_scores(plan: DecidePlan, rows: pd.DataFrame, stage: int) -> np.ndarray:
@@ -161,8 +162,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
     looks = check_record(plan, read_record(sweep_dir))
     reg = plan.registration
     ran = 0
-    finished = bool(looks) and (looks[-1]["stage"] >= plan.stages
-                                or all(d != CONTINUE for d in looks[-1]["decision"].values()))
+    finished = is_finished(plan, looks)
     while not finished:
         stage = len(looks) + 1
         if stop_after is not None and ran >= stop_after:
@@ -195,7 +195,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
             break
         looks = looks + [now[len(looks)]]
         last = looks[-1]
-        finished = stage >= plan.stages or all(d != CONTINUE for d in last["decision"].values())
+        finished = is_finished(plan, looks)
         _write(sweep_dir, plan, looks, finished)
         stream.write(f"decide {plan.name}: look {stage} ({last['trials']} trials): " + "; ".join(
             f"{c}: {d} (|T| {abs(last['statistic'][c]):.4g}, boundary {_fmt(last['boundary'][c])})"
