@@ -15,6 +15,9 @@ from asp_dist.core.registry import DOMAINS, get_domain
 from asp_dist.errors import SpecError
 from asp_dist.hashing import stable_hash
 from asp_dist.spec import COMMON_DEFAULTS, HASH_NEUTRAL, CellSpec
+from asp_dist.study.decide_plan import DecidePlan
+from asp_dist.study.decide_run import cells_through
+from asp_dist.sweep.ledger import DECIDE_FILE
 from asp_dist.sweep.spaces import expand, grid_hash
 from asp_dist.training import bases
 from asp_dist.training.cell import run_cell
@@ -91,6 +94,17 @@ def test_spaces_that_ran_still_resolve_to_their_cells(manifest):
     expands to the recorded cells, and every recorded spec still resolves to its recorded id."""
     recorded = json.loads(manifest.read_text())
     specs = expand(space_path(recorded["space"]))
+    decided = manifest.parent / DECIDE_FILE
+    if decided.is_file():
+        # A decided sweep records the stages it reached, each training the treatments still open when it
+        # started; the grid and registration behind its looks must be the ones it ran under.
+        plan = DecidePlan.from_space(space_path(recorded["space"]))
+        record = json.loads(decided.read_text())
+        assert plan.fingerprint() == record["fingerprint"]
+        reached = [cells_through(plan, record["looks"], next_stage=False)]  # stopped between stages
+        if not record["finished"]:
+            reached.append(cells_through(plan, record["looks"], next_stage=True))  # stopped inside one
+        specs = next((c for c in reached if sorted(s.cell_id for s in c) == sorted(recorded["cells"])), reached[-1])
     assert sorted(s.cell_id for s in specs) == sorted(recorded["cells"])
     assert grid_hash(specs) == recorded["grid_hash"]
     assert [CellSpec.from_dict(s).cell_id for s in recorded["specs"]] == recorded["cells"]

@@ -23,6 +23,7 @@ from asp_dist.analysis.sequential import CONTINUE, LARGER, SMALLER, SequentialRe
 from asp_dist.errors import SweepError
 from asp_dist.results import store
 from asp_dist.results.location import AnyPath, write_replace
+from asp_dist.spec import CellSpec
 from asp_dist.study.decide_plan import DecidePlan
 from asp_dist.sweep import ledger
 from asp_dist.sweep.plan import Plan, RunOptions
@@ -77,6 +78,13 @@ def is_finished(plan: DecidePlan, looks: list[dict[str, Any]]) -> bool:
     """Whether the recorded looks end the run: every comparison decided, or the last stage judged."""
     return bool(looks) and (looks[-1]["stage"] >= plan.stages
                             or all(d != CONTINUE for d in looks[-1]["decision"].values()))
+
+
+def cells_through(plan: DecidePlan, looks: list[dict[str, Any]], next_stage: bool) -> list[CellSpec]:
+    """The cells of the stages the looks judged, and with `next_stage` of the stage after them (what its
+    sweep's manifest holds): a stage trains the treatments still open when it starts."""
+    trained = [set(look["trained"]) for look in looks]
+    return plan.stage_specs(trained + [open_treatments(plan, looks)] if next_stage else trained)
 
 
 def stage_scores(plan: DecidePlan, rows: pd.DataFrame, stage: int) -> np.ndarray:
@@ -168,7 +176,7 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
         if stop_after is not None and ran >= stop_after:
             break
         needed = open_treatments(plan, looks)
-        specs = plan.stage_specs([set(look["trained"]) for look in looks] + [needed])
+        specs = cells_through(plan, looks, next_stage=True)
         trials = plan.stage_trials(stage)
         stream.write(f"decide {plan.name}: stage {stage} of at most {plan.stages}: trials {trials[0]}-{trials[-1]} "
                      f"({len(trials)} of {len(plan.trials)}), {', '.join(t for t in reg.treatments if t in needed)}\n")
