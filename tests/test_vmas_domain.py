@@ -1,0 +1,159 @@
+"""The VMAS speaker–listener: its world against mpe2's, learning through the differentiable world, the word
+figures a base is accepted on, and the domain set aside without the extra. (The contract and one cell of each
+method: tests/test_domain_registry.py, parametrised over every registered domain.)"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+pytest.importorskip("vmas")
+
+from asp_dist.core.registry import get_domain  # noqa: E402
+from asp_dist.domains.vmas import game  # noqa: E402
+from asp_dist.domains.vmas.world import MOVES, Worlds, WorldOptions  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
+
+NAME = "vmas_speaker_listener"
+
+
+def smoke(**knobs) -> CellSpec:
+    return CellSpec(domain=NAME, method="osp", **{**get_domain(NAME).smoke, **knobs}).resolved()
+
+
+def test_the_world_steps_as_mpe2s_from_the_same_state():
+    """From mpe2's reset state, with the same moves and words, every step gives the same velocity, heard word
+    and goal colour, and VMAS's position is mpe2's plus dt × velocity (its integrator moves with the new
+    velocity, mpe2's with the old: from rest the two differ by exactly that). The reward is −distance² of
+    each one's own position."""
+    pytest.importorskip("mpe2")
+    from mpe2 import simple_speaker_listener_v4
+
+    mpe = simple_speaker_listener_v4.parallel_env(max_cycles=25)
+    rng = np.random.default_rng(0)
+    for seed in range(3):
+        mpe.reset(seed=seed)
+        raw = mpe.unwrapped.world
+        goal = [i for i, lm in enumerate(raw.landmarks) if lm is raw.agents[0].goal_b][0]
+        world = Worlds(1, WorldOptions())
+        world.reset(seed)
+        vm = world.env.world
+        for vmas_entity, mpe_entity in zip(vm.agents + vm.landmarks, raw.agents + raw.landmarks):
+            vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
+        world.env.scenario.goal[:] = goal
+        for _ in range(25):
+            move, word = int(rng.integers(5)), int(rng.integers(3))
+            obs, rew, *_ = mpe.step({"speaker_0": word, "listener_0": move})
+            reward = world.step(F.one_hot(torch.tensor([word]), 3).float(), F.one_hot(torch.tensor([move]), 5).float())
+            listener, mpe_listener = vm.agents[1].state, raw.agents[1].state
+            vel = torch.tensor(mpe_listener.p_vel, dtype=torch.float32)
+            assert torch.allclose(listener.vel[0], vel, atol=1e-5)
+            pos = torch.tensor(mpe_listener.p_pos, dtype=torch.float32) + 0.1 * vel
+            assert torch.allclose(listener.pos[0], pos, atol=1e-5)
+            assert torch.equal(world.obs[1][0, -3:], torch.tensor(obs["listener_0"][-3:]))  # the heard word
+            assert torch.allclose(world.obs[0][0], torch.tensor(obs["speaker_0"]))  # the goal's colour
+            goal_pos = vm.landmarks[goal].state.pos[0]
+            assert math.isclose(float(reward[0]), -float((listener.pos[0] - goal_pos).pow(2).sum()), rel_tol=1e-5)
+            assert math.isclose(rew["listener_0"], -float(np.sum((mpe_listener.p_pos - raw.landmarks[goal].state.p_pos)
+                                                                 ** 2)), rel_tol=1e-9)
+
+
+def test_options_where_vmas_differs_from_mpe2():
+    one_goal = Worlds(64, WorldOptions(goal_per_world=False))
+    one_goal.reset(3)
+    assert one_goal.goal.unique().numel() == 1  # VMAS's own scenario: one goal for the batch
+    per_world = Worlds(64, WorldOptions())
+    per_world.reset(3)
+    assert per_world.goal.unique().numel() == 3
+    for force in (5.0, 1.0):  # mpe2's listener is 5 times VMAS's
+        w = Worlds(2, WorldOptions(force=force))
+        w.reset(0)
+        w.step(torch.zeros(2, 3), F.one_hot(torch.tensor([2, 4]), 5).float())
+        assert torch.allclose(w.env.world.agents[1].state.vel, MOVES[[2, 4]] * force * 0.1)
+    dist = Worlds(4, WorldOptions(reward="dist"))
+    dist.reset(1)
+    reward = dist.step(torch.zeros(4, 3), torch.zeros(4, 5))
+    goals = torch.stack([lm.state.pos for lm in dist.env.world.landmarks], 1)[torch.arange(4), dist.goal]
+    assert torch.allclose(reward, -2 * (dist.env.world.agents[1].state.pos - goals).norm(dim=-1))
+
+
+def test_an_episode_starts_every_world_afresh_from_its_seed():
+    spec = smoke()
+    team = game.new_agents(spec, 0)
+    a = game.play(spec, team.speaker, team.listener, 8, 5, torch.Generator().manual_seed(1))
+    b = game.play(spec, team.speaker, team.listener, 8, 5, torch.Generator().manual_seed(1))
+    assert torch.equal(a.returns, b.returns) and torch.equal(a.words, b.words)
+    world = game.worlds(8, game.options(spec))
+    world.reset(5)
+    assert torch.equal(world.obs[1][:, -3:], torch.zeros(8, 3))  # no word heard from the last episode
+    assert torch.equal(world.obs[1][:, :2], torch.zeros(8, 2))  # at rest
+
+
+def test_the_return_reaches_the_speaker_through_the_world():
+    """The speaker's weights get a gradient from the team's return alone: through its straight-through word,
+    the heard word in the listener's observation and the listener's move, whose force moves the listener."""
+    spec = smoke(vmas_speaker_listener_entropy=0.0)
+    team = game.new_agents(spec, 1)
+    episode = game.play(spec, team.speaker, team.listener, 16, 2, torch.Generator().manual_seed(0))
+    game.team_loss(spec, episode).backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in team.speaker.parameters())
+    with torch.no_grad():
+        silent = game.play(spec, team.speaker, team.listener, 16, 2, torch.Generator().manual_seed(0))
+    assert torch.equal(silent.returns, episode.returns.detach())  # the gradient changes nothing forward
+
+
+def test_word_figures_read_a_code_and_its_use():
+    goal = torch.tensor([0, 1, 2, 0, 1, 2])
+    assert math.isclose(game.word_mi(goal, goal.expand(4, 6)), math.log(3), rel_tol=1e-9)  # a perfect code
+    assert game.word_mi(goal, torch.zeros(4, 6, dtype=torch.long)) == 0.0  # one word for every goal
+    assert math.isclose(game.word_mi(goal, torch.tensor([[0, 0, 1, 0, 0, 1]])), math.log(3) - 2 / 3 * math.log(2),
+                        rel_tol=1e-9)  # two goals share a word
+
+
+@pytest.mark.parametrize("drop, bar, score", [(2.0, 3.0, 0.0), (2.0, 1.0, 0.8), (-0.5, 0.0, 0.0)])
+def test_a_base_scores_its_words_mi_only_when_the_listener_uses_them(monkeypatch, drop, bar, score):
+    monkeypatch.setattr(game, "word_figures", lambda spec, team, gen: (0.8, drop))
+    assert get_domain(NAME).train_base(smoke(vmas_speaker_listener_accept_drop=bar), seed=3)[1] == score
+
+
+def test_rows_carry_the_bases_word_figures():
+    spec = smoke()
+    domain = get_domain(NAME)
+    base, _ = domain.train_base(spec, seed=1)
+    agents = domain.new_agents(spec, 2)
+    metrics = domain.evaluate(spec, base, agents, torch.Generator().manual_seed(4))
+    mi, drop = game.word_figures(spec, base, torch.Generator().manual_seed(4))
+    assert metrics["base_word_mi"] == mi and metrics["base_word_drop"] == pytest.approx(drop)
+    assert set(metrics) == set(domain.metrics)
+
+
+@pytest.mark.parametrize("role, width", [("listener_0", 5), ("speaker_0", 3)])
+def test_the_channel_is_the_new_agents_choice(role, width):
+    spec = smoke(vmas_speaker_listener_new_agent=role)
+    domain = get_domain(NAME)
+    base, _ = domain.train_base(spec, seed=1)
+    u = domain.unpaired(spec, base, 40, torch.Generator().manual_seed(0))["channel"]
+    assert u.shape == (40, width) and torch.equal(u.sum(-1), torch.ones(40))
+    p = domain.paired(spec, base, 5, torch.Generator().manual_seed(0))
+    assert p["obs"].shape == (5, 3 if role == "speaker_0" else 11) and p["action"].max() < width
+
+
+MISSING = """
+import sys
+sys.modules["vmas"] = None  # as if the extra were not installed
+from asp_dist.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_without_the_extra_the_domain_is_set_aside_with_one_line():
+    check = subprocess.run([sys.executable, "-c", MISSING, "check-domain", NAME], capture_output=True, text=True,
+                           timeout=120)
+    assert check.returncode == 2, check.stderr
+    assert check.stderr.count("\n") == 1 and "pip install 'asp-dist[vmas]'" in check.stderr
