@@ -157,3 +157,18 @@ def test_without_the_extra_the_domain_is_set_aside_with_one_line():
                            timeout=120)
     assert check.returncode == 2, check.stderr
     assert check.stderr.count("\n") == 1 and "pip install 'asp-dist[vmas]'" in check.stderr
+
+
+@pytest.mark.parametrize("knobs, message", [
+    ({"new_agent": "critic"}, "vmas_speaker_listener_new_agent must be one of"),
+    ({"reward": "distance"}, "vmas_speaker_listener_reward must be one of"),
+    ({"force": 0.0}, "vmas_speaker_listener_force must be > 0"),
+    ({"episode_len": 0}, "vmas_speaker_listener_episode_len must be >= 1"),
+    ({"base_worlds": 0}, "vmas_speaker_listener_base_worlds must be >= 1"),
+])
+def test_bad_input_is_one_line_at_resolution(knobs, message):
+    from asp_dist.errors import SpecError
+
+    with pytest.raises(SpecError, match=message) as err:
+        CellSpec(domain=NAME, method="asp", paired=2, **{f"{NAME}_{k}": v for k, v in knobs.items()}).resolved()
+    assert "\n" not in str(err.value)

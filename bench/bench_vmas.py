@@ -1,0 +1,181 @@
+"""MPE's speaker–listener on VMAS (vmas_speaker_listener) against mpe2 through the PettingZoo adapter
+(mpe_speaker_listener), on one thread, in CPU seconds (time.process_time).
+
+    python bench/bench_vmas.py                       # env steps only, about 1 minute
+    python bench/bench_vmas.py --cells               # and one default cell of each domain (several minutes)
+    python bench/bench_vmas.py --cells --json docs/bench-results/vmas-<date>.json
+
+Needs the `pettingzoo` and `vmas` extras. Rows:
+
+  env steps        world-steps per CPU-second with random actions, no learning: mpe2's copies through the
+                   adapter's EnvBatch (a Python loop over copies) and VMAS's worlds as one batch, at n worlds
+  training steps   world-steps per CPU-second of each domain's own learner at its defaults: the adapter's A2C
+                   update (8 copies × 5 steps, autograd) and one VMAS episode through the differentiable world
+                   (64 worlds × 25 steps, forward and backward)
+  cells (--cells)  one PC, OSP and ASP cell of each domain at its defaults, on a base trained once (its CPU
+                   seconds apart): CPU seconds per cell and world-steps per cell
+
+Figures are CPU seconds of this process, so load from other processes inflates them less than wall time, but
+a busy machine still slows caches and turbo: the load average is printed and stored with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine_info  # noqa: E402
+
+from asp_dist.core.registry import get_domain  # noqa: E402
+from asp_dist.spec import CellSpec  # noqa: E402
+
+MPE, VMAS = "mpe_speaker_listener", "vmas_speaker_listener"
+
+
+def cpu_per_call(call, repeats: int = 3, min_s: float = 1.0) -> float:
+    """Median over `repeats` blocks of the CPU seconds of one call (each block at least min_s of CPU)."""
+    out = []
+    for _ in range(repeats):
+        n, start = 0, time.process_time()
+        while True:
+            call()
+            n += 1
+            spent = time.process_time() - start
+            if spent >= min_s:
+                break
+        out.append(spent / n)
+    return statistics.median(out)
+
+
+def env_steps(n: int) -> dict[str, float]:
+    """World-steps per CPU-second with random actions: mpe2 copies (EnvBatch) and VMAS worlds, n each."""
+    from asp_dist.domains.pettingzoo.envs import EnvBatch
+    from asp_dist.domains.vmas.world import Worlds, WorldOptions
+
+    facts = get_domain(MPE).facts(CellSpec(domain=MPE, method="osp").resolved())
+    batch = EnvBatch(facts, n)
+    batch.reset(range(n), range(n))
+    rng = np.random.default_rng(0)
+
+    def mpe_step():
+        batch.step([rng.integers(3, size=(n, 1)).astype(float), rng.integers(5, size=(n, 1)).astype(float)])
+        if batch.t[0] >= 25:
+            batch.reset(range(n), range(n))
+
+    worlds = Worlds(n, WorldOptions())
+    worlds.reset(0)
+    words, moves = torch.eye(3)[torch.randint(3, (n,))], torch.eye(5)[torch.randint(5, (n,))]
+
+    def vmas_step():
+        with torch.no_grad():
+            worlds.step(words, moves)
+        if worlds.t >= 25:
+            worlds.reset(1)
+
+    out = {"n": n, "mpe2_steps_per_cpu_s": n / cpu_per_call(mpe_step), "vmas_steps_per_cpu_s": n / cpu_per_call(vmas_step)}
+    batch.close()
+    return out
+
+
+def learner_steps() -> dict[str, float]:
+    """World-steps per CPU-second of one update of each domain's learner at its defaults."""
+    from asp_dist.domains.pettingzoo import game as pz
+    from asp_dist.domains.vmas import game as vm
+
+    mpe_spec = CellSpec(domain=MPE, method="osp").resolved()
+    domain, agents = get_domain(MPE), pz.new_agents(get_domain(MPE), mpe_spec, 0)
+    gen = torch.Generator().manual_seed(0)
+    state = domain.init_self_play(mpe_spec, agents, gen)
+    opt = torch.optim.Adam(agents.parameters(), lr=1e-3)
+
+    def a2c():
+        loss = domain.self_play_step(mpe_spec, agents, state, gen).loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    vm_spec = CellSpec(domain=VMAS, method="osp").resolved()
+    team = vm.new_agents(vm_spec, 0)
+    vm_opt = torch.optim.Adam(team.parameters(), lr=1e-3)
+
+    def episode():
+        loss = vm.self_play_step(vm_spec, team, {}, gen).loss
+        vm_opt.zero_grad()
+        loss.backward()
+        vm_opt.step()
+
+    mpe_steps = mpe_spec.batch_size * mpe_spec.mpe_speaker_listener_rollout_len
+    vm_steps = vm_spec.batch_size * vm_spec.vmas_speaker_listener_episode_len
+    return {"mpe2_a2c_steps_per_cpu_s": mpe_steps / cpu_per_call(a2c),
+            "vmas_episode_steps_per_cpu_s": vm_steps / cpu_per_call(episode),
+            "mpe2_world_steps_per_update": mpe_steps, "vmas_world_steps_per_update": vm_steps}
+
+
+def cells(trial: int) -> list[dict]:
+    """One PC, OSP and ASP cell (paired 2) of each domain at its defaults, on one base per domain."""
+    from asp_dist.training.cell import run_cell
+    from asp_dist.training.bases import train_accepted_base
+
+    out = []
+    for name in (MPE, VMAS):
+        spec = CellSpec(domain=name, method="asp", paired=2, trial=trial).resolved()
+        start = time.process_time()
+        base = train_accepted_base(spec)
+        base_cpu = time.process_time() - start
+        for method in ("pc", "osp", "asp"):
+            cell = spec.replace(method=method).resolved()
+            start = time.process_time()
+            row = run_cell(cell, base=base)
+            cpu = time.process_time() - start
+            if name == MPE:
+                world_steps = cell.train_steps * cell.batch_size * cell.mpe_speaker_listener_rollout_len
+            else:
+                world_steps = cell.train_steps * cell.batch_size * cell.vmas_speaker_listener_episode_len
+            out.append({"domain": name, "method": method, "cpu_s": cpu, "base_cpu_s": base_cpu,
+                        "train_world_steps": world_steps if method != "pc" else 0,
+                        "mixed": row["eval_mixed"], "base_score": row["base_score"]})
+            print(f"  {name:24s} {method:4s} cell {cpu:7.1f} CPU-s  (base {base_cpu:6.1f} CPU-s, "
+                  f"{world_steps if method != 'pc' else 0:,} self-play world-steps, mixed {row['eval_mixed']:.2f})",
+                  flush=True)
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cells", action="store_true", help="also time one default cell of each method and domain")
+    parser.add_argument("--trial", type=int, default=900, help="trial of the timed cells (a calibration id < 1000)")
+    parser.add_argument("--json", type=Path, help="write the figures here")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    result = {"machine": machine_info(), "load_before": os.getloadavg()[0], "env_steps": [], "learner": {}}
+    print(f"load average {result['load_before']:.2f}; world-steps per CPU-second, one thread")
+    for n in (1, 64, 1024):
+        row = env_steps(n)
+        result["env_steps"].append(row)
+        print(f"  random actions, {n:5d} worlds: mpe2 {row['mpe2_steps_per_cpu_s']:10,.0f}   "
+              f"vmas {row['vmas_steps_per_cpu_s']:10,.0f}   ({row['vmas_steps_per_cpu_s'] / row['mpe2_steps_per_cpu_s']:.1f}×)")
+    result["learner"] = learner_steps()
+    lr = result["learner"]
+    print(f"  training: mpe2 A2C update {lr['mpe2_a2c_steps_per_cpu_s']:,.0f}   vmas episode through the world "
+          f"{lr['vmas_episode_steps_per_cpu_s']:,.0f}")
+    if args.cells:
+        result["cells"] = cells(args.trial)
+    result["load_after"] = os.getloadavg()[0]
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
