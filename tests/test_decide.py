@@ -48,8 +48,9 @@ class FakeRunner:
     up to noise, the broken copy far lower), records the specs it was given, and can stop like Ctrl-C after
     `stop_after_rows` rows."""
 
-    def __init__(self, results: Path, stop_after_rows: int | None = None):
+    def __init__(self, results: Path, stop_after_rows: int | None = None, fail: dict[int, str] | None = None):
         self.results, self.stop_after_rows, self.calls = results, stop_after_rows, []
+        self.fail = fail or {}  # trial -> the error each of its cells fails with
 
     def __call__(self, plan, options, stream):
         self.calls.append([s.cell_id for s in plan.specs])
@@ -57,9 +58,13 @@ class FakeRunner:
         # the manifest a run writes before its cells (new, or the stage's grown grid)
         store.write_manifest(sweep_dir, check_manifest(sweep_dir, plan.name, plan.specs, plan.space, extend=True))
         done = store.done_cell_ids(sweep_dir)
-        written = 0
+        written = failed = 0
         for spec in plan.specs:
             if spec.cell_id in done:
+                continue
+            if spec.trial in self.fail:
+                store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, self.fail[spec.trial])
+                failed += 1
                 continue
             if self.stop_after_rows is not None and written >= self.stop_after_rows:
                 self.stop_after_rows = None
@@ -68,7 +73,7 @@ class FakeRunner:
             score = 0.1 if spec.method == "osp@broken" else 0.8 + 0.05 * rng.standard_normal()
             store.write_row(sweep_dir, finished_row(spec, eval_mixed=score, metric_directions=HIGHER), "fake")
             written += 1
-        return SweepResult(plan.name, sweep_dir, len(plan.specs), len(plan.specs), 0)
+        return SweepResult(plan.name, sweep_dir, len(plan.specs), len(plan.specs) - failed, failed)
 
 
 def decide(plan, results: Path, runner, **kw):
@@ -103,6 +108,27 @@ def test_stopped_between_or_inside_stages_it_continues_to_the_same_record(tmp_pa
     resumed = FakeRunner(results)
     assert decide(plan, results, resumed).looks == whole
     assert resumed.calls[0] == inside.calls[0]  # the interrupted stage's grid, continued
+
+
+REJECTED = "Traceback ...\nBaseRejected: signaling base for trial 1003: no attempt of 5 reached the bar"
+
+
+def test_a_trial_whose_base_met_no_bar_is_lost_and_the_stage_still_looks(tmp_path):
+    """A lost trial counts toward its stage and enters no comparison: the looks are those of the same rows with
+    the trial's differences zero; any other failure leaves the stage without a look until it is retried."""
+    plan, results = plan_of(tmp_path), tmp_path / "results"
+    result = decide(plan, results, FakeRunner(results, fail={1003: REJECTED}), stop_after=1)
+    assert result.complete and result.looks[0]["lost_trials"] == [1003]
+    assert result.looks[0]["trials"] == 8 and result.looks[0]["decision"]["osp vs osp@broken"] == "larger"
+    # the statistic is the sum over the other seven trials
+    rows = store.read_rows(results / "d")
+    per_trial = rows.pivot_table(index="trial", columns="method", values="eval_mixed", aggfunc="mean")
+    expected = float((per_trial["osp"] - per_trial["osp@broken"]).sum())
+    assert 1003 not in per_trial.index
+    assert result.looks[0]["statistic"]["osp vs osp@broken"] == pytest.approx(expected)
+    other = tmp_path / "other"
+    stopped = decide(plan, other, FakeRunner(other, fail={1003: "Traceback ...\nRuntimeError: worker died"}))
+    assert not stopped.complete and stopped.looks == []
 
 
 def test_rows_changed_under_a_recorded_look_are_refused(tmp_path):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from asp_dist.analysis.sequential import (CONTINUE, EQUAL, LARGER, SMALLER, blocked_adastop, e_value,
-                                          permutation_draws, run_test, trial_scores)
+                                          TESTS, permutation_draws, run_test, trial_scores)
 
 NAMES = ["pc", "osp", "asp"]
 PAIRS = [(2, 1), (2, 0)]  # asp vs osp, asp vs pc
@@ -274,3 +274,15 @@ def test_a_real_effect_is_found_most_of_the_time(test):
     found = sum(r[AO] == LARGER and r[AP] == LARGER for r in runs)
     assert found >= 80
     assert not any(d == SMALLER for r in runs for d in r.values())
+
+
+@pytest.mark.parametrize("test", TESTS)
+def test_a_lost_trial_changes_no_statistic(test):
+    """A trial without any score (its base met no bar) adds nothing: the statistics at a look that includes it
+    are those of the other trials alone (blocked AdaStop: its differences are zero in every draw; e-value: no bet)."""
+    y = np.random.default_rng(5).normal(size=(30, 2)) + np.array([0.4, 0.0])
+    lost = np.insert(y, 10, np.nan, axis=0)
+    kept = run_test(test, y, [30], [("a", "b")], ["a", "b"], 1, 0.05, permutations=500)
+    with_lost = run_test(test, lost, [31], [("a", "b")], ["a", "b"], 1, 0.05, permutations=500)
+    assert with_lost.looks[0].statistic == pytest.approx(kept.looks[0].statistic)
+    assert with_lost.looks[0].decision == kept.looks[0].decision

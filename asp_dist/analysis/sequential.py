@@ -133,6 +133,7 @@ def blocked_adastop(y: np.ndarray, looks: Sequence[int], comparisons: Sequence[t
     order = np.argsort(draws[:, :n, :], axis=2)  # where each treatment's score goes
     diffs = np.stack([np.where((order[:, :, a] < order[:, :, b]) == (a < b), 1.0, -1.0) * (y[:, a] - y[:, b])
                       for a, b in comparisons], axis=2)  # B x n x m
+    diffs[:, np.isnan(y).all(axis=1), :] = 0.0  # a lost trial (no base met its bar) adds nothing, observed or drawn
     cums = np.cumsum(diffs, axis=1)
     alive = np.ones(B, dtype=bool)  # draws not stopped at an earlier look (AdaStop's conditioning)
     open_ = list(range(len(comparisons)))
@@ -203,7 +204,10 @@ def e_value(y: np.ndarray, looks: Sequence[int], comparisons: Sequence[tuple[int
         path = []
         xs: list[float] = []
         for i, di in enumerate(d):
-            scale = float(np.median(np.abs(d[:i]))) if i else 0.0
+            if np.isnan(di):  # a lost trial (no base met its bar): no bet
+                path.append((w_long, w_short))
+                continue
+            scale = float(np.median(np.abs(d[:i][~np.isnan(d[:i])]))) if i else 0.0
             if scale > 0:
                 x = float(np.tanh(di / scale))
                 mu = float(np.mean(xs)) if xs else 0.0

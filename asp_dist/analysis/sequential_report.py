@@ -52,7 +52,9 @@ def looks_table(record: dict) -> pd.DataFrame:
         for c, d in look["decision"].items():
             stat, bound = look["statistic"].get(c), look["boundary"].get(c)
             rows.append({"stage": look["stage"], "trials": look["trials"],
-                         "trial_ids": f"{look['first_trial']}–{look['last_trial']}", "comparison": c,
+                         "trial_ids": f"{look['first_trial']}–{look['last_trial']}"
+                         + (f" (lost: {', '.join(map(str, look['lost_trials']))})" if look.get("lost_trials") else ""),
+                         "comparison": c,
                          "statistic": stat, "abs_statistic": None if stat is None else abs(stat),
                          "boundary": bound, "decision": _word(d, c), "trained": ", ".join(look.get("trained", []))})
     return pd.DataFrame(rows)
