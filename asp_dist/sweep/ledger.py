@@ -325,14 +325,16 @@ def sweep_status(name: str, results: str | AnyPath = store.DEFAULT_RESULTS, list
         counts = table.setdefault((spec["domain"], spec["method"]), [0, 0, 0])
         counts[0 if cell_id in done else 1 if cell_id in failed else 2] += 1
     holder = lock_holder(sweep_dir)
+    wd = max([12, *(len(d) + 2 for d, _ in table)])  # columns as wide as the longest name
+    wm = max([8, *(len(m) + 2 for _, m in table)])
     lines = [f"sweep {name}: space {manifest['space']}, {len(manifest['cells'])} cells, grid {manifest['grid_hash']}, "
              + (f"RUNNING ({holder})" if holder else "not running"),
-             f"{'domain':<12}{'method':<8}{'done':>7}{'failed':>8}{'pending':>9}"]
+             f"{'domain':<{wd}}{'method':<{wm}}{'done':>7}{'failed':>8}{'pending':>9}"]
     totals = [0, 0, 0]
     for (domain, method), (d, f, p) in sorted(table.items()):
-        lines.append(f"{domain:<12}{method:<8}{d:>7}{f:>8}{p:>9}")
+        lines.append(f"{domain:<{wd}}{method:<{wm}}{d:>7}{f:>8}{p:>9}")
         totals = [totals[0] + d, totals[1] + f, totals[2] + p]
-    lines.append(f"{'total':<20}{totals[0]:>7}{totals[1]:>8}{totals[2]:>9}")
+    lines.append(f"{'total':<{wd + wm}}{totals[0]:>7}{totals[1]:>8}{totals[2]:>9}")
     if list_failed:
         lines += [f"failed {cell_id}: {store.last_error_line(failures[cell_id])}" for cell_id in sorted(failed)]
     elif failed:
