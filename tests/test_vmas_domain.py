@@ -64,6 +64,28 @@ def test_the_world_steps_as_mpe2s_from_the_same_state():
                                                                  ** 2)), rel_tol=1e-9)
 
 
+@pytest.mark.parametrize("grad", [False, True])
+def test_the_direct_step_is_vmass_environment_step(grad):
+    """Worlds.step (VMAS's World stepped directly) gives what Environment.step gives: observations, rewards and
+    gradients, over a whole episode of straight-through choices."""
+    team = game.new_agents(smoke(), 0)
+    out = []
+    for step in ("step", "reference_step"):
+        world, gen = Worlds(8, WorldOptions()), torch.Generator().manual_seed(1)
+        obs, total = world.reset(4), 0.0
+        with torch.set_grad_enabled(grad):
+            for _ in range(25):
+                word = game.choose(team.speaker(obs[0]), gen)[0]
+                move = game.choose(team.listener(obs[1]), gen)[0]
+                total = total + getattr(world, step)(word, move)
+                obs = world.obs
+        grads = torch.autograd.grad(total.sum(), list(team.parameters())) if grad else []
+        out.append((total.detach(), [o.detach() for o in obs], grads))
+    (a, obs_a, grad_a), (b, obs_b, grad_b) = out
+    assert torch.equal(a, b) and all(torch.equal(x, y) for x, y in zip(obs_a, obs_b))
+    assert all(torch.allclose(x, y, rtol=1e-6, atol=1e-9) for x, y in zip(grad_a, grad_b))
+
+
 def test_options_where_vmas_differs_from_mpe2():
     one_goal = Worlds(64, WorldOptions(goal_per_world=False))
     one_goal.reset(3)

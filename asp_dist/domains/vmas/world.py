@@ -117,8 +117,28 @@ class Worlds:
         return self.env.scenario.goal
 
     def step(self, word: torch.Tensor, move: torch.Tensor) -> torch.Tensor:
-        """word (n, 3) and move (n, 5) one-hot (or straight-through) choices -> team reward (n,)."""
-        speaker = torch.cat([torch.zeros(self.n, 2), word], -1)  # the speaker does not move
+        """word (n, 3) and move (n, 5) one-hot (or straight-through) choices -> team reward (n,).
+
+        Steps VMAS's World directly, as its Environment.step does for this scenario, without the Environment's
+        per-step checks and its swap of the global RNG states (`local_seed`, which nothing here draws from):
+        about a third of an episode's CPU (bench/bench_vmas.py). `reference_step` is the Environment's path;
+        tests/test_vmas_domain.py holds the two equal."""
+        world, scenario = self.env.world, self.env.scenario
+        speaker, listener = world.agents
+        speaker.action.u = torch.zeros(self.n, 2)  # the speaker does not move
+        speaker.action.c = word
+        listener.action.u = move @ (MOVES * self.options.force)
+        for agent in world.agents:
+            scenario.env_process_action(agent)  # the action's force (its dynamics)
+        world.step()
+        reward = scenario.reward(speaker)
+        self.obs = [scenario.observation(speaker), scenario.observation(listener)]
+        self.t += 1
+        return reward
+
+    def reference_step(self, word: torch.Tensor, move: torch.Tensor) -> torch.Tensor:
+        """The same step through VMAS's Environment.step."""
+        speaker = torch.cat([torch.zeros(self.n, 2), word], -1)
         self.obs, rewards, _, _ = self.env.step([speaker, move @ (MOVES * self.options.force)])
         self.t += 1
         return rewards[0]
