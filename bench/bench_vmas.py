@@ -75,11 +75,11 @@ def env_steps(n: int) -> dict[str, float]:
 
     worlds = Worlds(n, WorldOptions())
     worlds.reset(0)
-    words, moves = torch.eye(3)[torch.randint(3, (n,))], torch.eye(5)[torch.randint(5, (n,))]
+    choices = [{"say": torch.eye(3)[torch.randint(3, (n,))]}, {"move": torch.eye(5)[torch.randint(5, (n,))]}]
 
     def vmas_step():
         with torch.no_grad():
-            worlds.step(words, moves)
+            worlds.step(choices)
         if worlds.t >= 25:
             worlds.reset(1)
 

@@ -1,5 +1,5 @@
-"""The VMAS speaker–listener: its world against mpe2's, learning through the differentiable world, the word
-figures a base is accepted on, and the domain set aside without the extra. (The contract and one cell of each
+"""The VMAS domains (speaker–listener, reference): their worlds against mpe2's, learning through the
+differentiable world, the word figures a base is accepted on, and the domains set aside without the extra. (The contract and one cell of each
 method: tests/test_domain_registry.py, parametrised over every registered domain.)"""
 
 from __future__ import annotations
@@ -23,8 +23,17 @@ from asp_dist.spec import CellSpec  # noqa: E402
 NAME = "vmas_speaker_listener"
 
 
-def smoke(**knobs) -> CellSpec:
-    return CellSpec(domain=NAME, method="osp", **{**get_domain(NAME).smoke, **knobs}).resolved()
+REF = "vmas_reference"
+
+
+def smoke(domain: str = NAME, **knobs) -> CellSpec:
+    return CellSpec(domain=domain, method="osp", **{**get_domain(domain).smoke, **knobs}).resolved()
+
+
+def one_hots(word: int, move: int, words: int = 3) -> list[dict[str, torch.Tensor]]:
+    """A speaker's word and a listener's move, as Worlds.step takes them."""
+    return [{"say": F.one_hot(torch.tensor([word]), words).float()},
+            {"move": F.one_hot(torch.tensor([move]), 5).float()}]
 
 
 def test_the_world_steps_as_mpe2s_from_the_same_state():
@@ -46,11 +55,11 @@ def test_the_world_steps_as_mpe2s_from_the_same_state():
         vm = world.env.world
         for vmas_entity, mpe_entity in zip(vm.agents + vm.landmarks, raw.agents + raw.landmarks):
             vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
-        world.env.scenario.goal[:] = goal
+        world.env.scenario.goal[:] = goal  # (1, 1): the speaker's
         for _ in range(25):
             move, word = int(rng.integers(5)), int(rng.integers(3))
             obs, rew, *_ = mpe.step({"speaker_0": word, "listener_0": move})
-            reward = world.step(F.one_hot(torch.tensor([word]), 3).float(), F.one_hot(torch.tensor([move]), 5).float())
+            reward = world.step(one_hots(word, move))
             listener, mpe_listener = vm.agents[1].state, raw.agents[1].state
             vel = torch.tensor(mpe_listener.p_vel, dtype=torch.float32)
             assert torch.allclose(listener.vel[0], vel, atol=1e-5)
@@ -64,6 +73,57 @@ def test_the_world_steps_as_mpe2s_from_the_same_state():
                                                                  ** 2)), rel_tol=1e-9)
 
 
+def test_the_reference_world_steps_as_mpe2s_from_the_same_state():
+    """mpe2's simple_reference (both agents move and speak, Discrete(50) = move + 5 × word): the same velocities,
+    heard words and goal colours, positions apart by dt × velocity, and the team reward (the sum of both agents')
+    −distance of each partner to the goal its agent sees, at each one's own positions."""
+    pytest.importorskip("mpe2")
+    from mpe2 import simple_reference_v3
+
+    mpe = simple_reference_v3.parallel_env(max_cycles=25)
+    rng = np.random.default_rng(1)
+    for seed in range(2):
+        mpe.reset(seed=seed)
+        raw = mpe.unwrapped.world
+        goals = [[j for j, lm in enumerate(raw.landmarks) if lm is agent.goal_b][0] for agent in raw.agents]
+        world = Worlds(1, WorldOptions(scenario="reference"))
+        world.reset(seed)
+        vm = world.env.world
+        for vmas_entity, mpe_entity in zip(vm.agents + vm.landmarks, raw.agents + raw.landmarks):
+            vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
+        world.env.scenario.goal[0] = torch.tensor(goals)
+        for _ in range(25):
+            moves, words = rng.integers(5, size=2), rng.integers(10, size=2)
+            obs, rew, *_ = mpe.step({f"agent_{i}": int(moves[i] + 5 * words[i]) for i in range(2)})
+            reward = world.step([{"move": F.one_hot(torch.tensor([int(moves[i])]), 5).float(),
+                                  "say": F.one_hot(torch.tensor([int(words[i])]), 10).float()} for i in range(2)])
+            for i in range(2):
+                state, mpe_state = vm.agents[i].state, raw.agents[i].state
+                vel = torch.tensor(mpe_state.p_vel, dtype=torch.float32)
+                assert torch.allclose(state.vel[0], vel, atol=1e-5)
+                assert torch.allclose(state.pos[0], torch.tensor(mpe_state.p_pos, dtype=torch.float32) + 0.1 * vel,
+                                      atol=1e-5)
+                assert torch.allclose(world.obs[i][0, 8:], torch.tensor(obs[f"agent_{i}"][8:]))  # colour, word
+            mine = -sum(float((vm.agents[1 - i].state.pos[0] - vm.landmarks[goals[i]].state.pos[0]).norm())
+                        for i in range(2))
+            assert math.isclose(float(reward[0]), mine, rel_tol=1e-5)
+            theirs = -sum(float(np.linalg.norm(raw.agents[1 - i].state.p_pos - raw.landmarks[goals[i]].state.p_pos))
+                          for i in range(2))
+            assert math.isclose(rew["agent_0"] + rew["agent_1"], theirs, rel_tol=1e-9)
+
+
+@pytest.mark.parametrize("channel, width", [("say", 10), ("move", 5)])
+def test_a_reference_agent_has_either_part_as_its_channel(channel, width):
+    spec = smoke(REF, vmas_reference_channel=channel)
+    domain = get_domain(REF)
+    base, _ = domain.train_base(spec, seed=1)
+    assert domain.unpaired(spec, base, 30, torch.Generator().manual_seed(0))["channel"].shape == (30, width)
+    p = domain.paired(spec, base, 4, torch.Generator().manual_seed(0))
+    assert p["obs"].shape == (4, 21) and p["action"].shape == (4, 2)  # both of its choices
+    metrics = domain.evaluate(spec, base, domain.new_agents(spec, 2), torch.Generator().manual_seed(1))
+    assert set(metrics) == set(domain.metrics) and all(math.isfinite(v) for v in metrics.values())
+
+
 @pytest.mark.parametrize("grad", [False, True])
 def test_the_direct_step_is_vmass_environment_step(grad):
     """Worlds.step (VMAS's World stepped directly) gives what Environment.step gives: observations, rewards and
@@ -75,9 +135,9 @@ def test_the_direct_step_is_vmass_environment_step(grad):
         obs, total = world.reset(4), 0.0
         with torch.set_grad_enabled(grad):
             for _ in range(25):
-                word = game.choose(team.speaker(obs[0]), gen)[0]
-                move = game.choose(team.listener(obs[1]), gen)[0]
-                total = total + getattr(world, step)(word, move)
+                word = game.choose(team.agent(0)(obs[0]), gen)[0]
+                move = game.choose(team.agent(1)(obs[1]), gen)[0]
+                total = total + getattr(world, step)([{"say": word}, {"move": move}])
                 obs = world.obs
         grads = torch.autograd.grad(total.sum(), list(team.parameters())) if grad else []
         out.append((total.detach(), [o.detach() for o in obs], grads))
@@ -96,21 +156,21 @@ def test_options_where_vmas_differs_from_mpe2():
     for force in (5.0, 1.0):  # mpe2's listener is 5 times VMAS's
         w = Worlds(2, WorldOptions(force=force))
         w.reset(0)
-        w.step(torch.zeros(2, 3), F.one_hot(torch.tensor([2, 4]), 5).float())
+        w.step([{"say": torch.zeros(2, 3)}, {"move": F.one_hot(torch.tensor([2, 4]), 5).float()}])
         assert torch.allclose(w.env.world.agents[1].state.vel, MOVES[[2, 4]] * force * 0.1)
     dist = Worlds(4, WorldOptions(reward="dist"))
     dist.reset(1)
-    reward = dist.step(torch.zeros(4, 3), torch.zeros(4, 5))
-    goals = torch.stack([lm.state.pos for lm in dist.env.world.landmarks], 1)[torch.arange(4), dist.goal]
+    reward = dist.step([{"say": torch.zeros(4, 3)}, {"move": torch.zeros(4, 5)}])
+    goals = torch.stack([lm.state.pos for lm in dist.env.world.landmarks], 1)[torch.arange(4), dist.goal[:, 0]]
     assert torch.allclose(reward, -2 * (dist.env.world.agents[1].state.pos - goals).norm(dim=-1))
 
 
 def test_an_episode_starts_every_world_afresh_from_its_seed():
     spec = smoke()
     team = game.new_agents(spec, 0)
-    a = game.play(spec, team.speaker, team.listener, 8, 5, torch.Generator().manual_seed(1))
-    b = game.play(spec, team.speaker, team.listener, 8, 5, torch.Generator().manual_seed(1))
-    assert torch.equal(a.returns, b.returns) and torch.equal(a.words, b.words)
+    a = game.play(spec, list(team.actors), 8, 5, torch.Generator().manual_seed(1))
+    b = game.play(spec, list(team.actors), 8, 5, torch.Generator().manual_seed(1))
+    assert torch.equal(a.returns, b.returns) and torch.equal(a.words[0], b.words[0])
     world = game.worlds(8, game.options(spec))
     world.reset(5)
     assert torch.equal(world.obs[1][:, -3:], torch.zeros(8, 3))  # no word heard from the last episode
@@ -122,11 +182,11 @@ def test_the_return_reaches_the_speaker_through_the_world():
     the heard word in the listener's observation and the listener's move, whose force moves the listener."""
     spec = smoke(vmas_speaker_listener_entropy=0.0)
     team = game.new_agents(spec, 1)
-    episode = game.play(spec, team.speaker, team.listener, 16, 2, torch.Generator().manual_seed(0))
+    episode = game.play(spec, list(team.actors), 16, 2, torch.Generator().manual_seed(0))
     game.team_loss(spec, episode).backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in team.speaker.parameters())
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in team.agent(0).parameters())
     with torch.no_grad():
-        silent = game.play(spec, team.speaker, team.listener, 16, 2, torch.Generator().manual_seed(0))
+        silent = game.play(spec, list(team.actors), 16, 2, torch.Generator().manual_seed(0))
     assert torch.equal(silent.returns, episode.returns.detach())  # the gradient changes nothing forward
 
 

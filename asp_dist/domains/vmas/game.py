@@ -1,19 +1,20 @@
-"""The VMAS speaker–listener's torch half: the team, episodes through the differentiable world, the base
-and its acceptance, P and U, the paired loss, the convention outputs and evaluation.
+"""The VMAS domains' torch half: the team, episodes through the differentiable world, the base and its
+acceptance, P and U, the paired loss, the convention outputs and evaluation. Every function reads its domain's
+knobs as `<spec.domain>_<knob>`, so both domains (speaker–listener, reference) share it.
 
-An episode is `episode_len` steps of n worlds from one reset seed. Every choice is a straight-through
-sample (forward: the one-hot of a draw from the softmax with the cell's generator; backward: the softmax's
-gradient), so the return is differentiable in both agents' weights through the world, the heard word and the
-listener. Training a team is: play an episode with gradients, loss = −(mean return per step) − entropy ·
-(mean entropy per step), one Adam step. Evaluation plays every composition on the same reset seed and the
-same action generator seed (common random numbers).
+An episode is `episode_len` steps of n worlds from one reset seed. Every choice (each agent's move and word) is
+a straight-through sample (forward: the one-hot of a draw from the softmax with the cell's generator;
+backward: the softmax's gradient), so the return is differentiable in every agent's weights through the world
+and the heard words. Training a team is: play an episode with gradients, loss = −(mean return per step) −
+entropy · (mean entropy per step), one Adam step. Evaluation plays every composition on the same reset seed
+and the same action generator seed (common random numbers).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,7 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from asp_dist.core.contract import SelfPlayOut
-from asp_dist.domains.vmas.world import LISTENER_OBS, N_MOVES, SPEAKER_OBS, WORDS, Worlds, WorldOptions
+from asp_dist.domains.vmas.world import LANDMARKS, SCENARIOS, AgentRole, Worlds, WorldOptions
 from asp_dist.nn import seeded
 
 if TYPE_CHECKING:
@@ -30,20 +31,33 @@ if TYPE_CHECKING:
 PAIRED_WORLDS = 32  # base episodes run together while P is collected: P(n) is a prefix of P(m) for n < m
 MAX_WORLDS = 1024  # worlds at most in one batch of data collection
 SEED_HIGH = 2**31 - 1
-SPEAKER, LISTENER = 0, 1
 _WORLDS: dict[tuple[int, WorldOptions], Worlds] = {}  # built once per (n, options) per process: reset reseeds them
 
 
-class SpeakerListenerTeam(nn.Module):
-    """speaker: goal colour -> word logits; listener: (velocity, landmarks, heard word) -> move logits."""
+def knob(spec: CellSpec, suffix: str) -> Any:
+    return getattr(spec, f"{spec.domain}_{suffix}")
 
-    def __init__(self, hidden: int):
+
+def scenario(spec: CellSpec) -> str:
+    """The scenario of the spec's domain (its card's `scenario`)."""
+    from asp_dist.core.registry import get_domain
+
+    return get_domain(spec.domain).scenario
+
+
+def roles(spec: CellSpec) -> tuple[AgentRole, ...]:
+    return SCENARIOS[scenario(spec)].agents
+
+
+class Team(nn.Module):
+    """One actor per agent, in the scenario's order: observation -> the logits of each of its parts."""
+
+    def __init__(self, agents: tuple[AgentRole, ...], hidden: int):
         super().__init__()
-        self.speaker = _mlp(SPEAKER_OBS, WORDS, hidden)
-        self.listener = _mlp(LISTENER_OBS, N_MOVES, hidden)
+        self.actors = nn.ModuleList([_mlp(a.obs, sum(s for _, s in a.parts), hidden) for a in agents])
 
     def agent(self, index: int) -> nn.Module:
-        return self.speaker if index == SPEAKER else self.listener
+        return self.actors[index]
 
 
 def _mlp(inputs: int, outputs: int, hidden: int) -> nn.Sequential:
@@ -51,13 +65,11 @@ def _mlp(inputs: int, outputs: int, hidden: int) -> nn.Sequential:
                          nn.Linear(hidden, outputs))
 
 
-def knob(spec: CellSpec, suffix: str):
-    return getattr(spec, f"vmas_speaker_listener_{suffix}")
-
-
 def options(spec: CellSpec) -> WorldOptions:
-    return WorldOptions(goal_per_world=knob(spec, "goal_per_world"), force=knob(spec, "force"),
-                        reward=knob(spec, "reward"), episode_len=knob(spec, "episode_len"))
+    name = scenario(spec)
+    reward = getattr(spec, f"{spec.domain}_reward", SCENARIOS[name].rewards[0])  # a knob where there is a choice
+    return WorldOptions(scenario=name, goal_per_world=knob(spec, "goal_per_world"), force=knob(spec, "force"),
+                        reward=reward, episode_len=knob(spec, "episode_len"))
 
 
 def worlds(n: int, opts: WorldOptions) -> Worlds:
@@ -67,8 +79,12 @@ def worlds(n: int, opts: WorldOptions) -> Worlds:
     return _WORLDS[key]
 
 
-def role(spec: CellSpec) -> int:
-    return LISTENER if knob(spec, "new_agent") == "listener_0" else SPEAKER
+def role(spec: CellSpec) -> tuple[int, int]:
+    """(the new agent's index, its channel part's index): an agent with one part has it as its channel."""
+    agents = roles(spec)
+    index = [a.name for a in agents].index(knob(spec, "new_agent"))
+    parts = [p for p, _ in agents[index].parts]
+    return index, 0 if len(parts) == 1 else parts.index(knob(spec, "channel"))
 
 
 def draw_seed(gen: torch.Generator) -> int:
@@ -87,44 +103,65 @@ def choose(logits: torch.Tensor, gen: torch.Generator, greedy: bool = False) -> 
 @dataclass
 class Episode:
     returns: torch.Tensor  # (n,) team return per world (with grad when played with it)
-    entropy: torch.Tensor  # (n,) summed over steps and both agents
-    goal: torch.Tensor  # (n,)
-    words: torch.Tensor  # (T, n) word indices said
-    role_obs: list[torch.Tensor]  # per step, (n, obs) of the recorded role (record=...)
-    role_choice: list[torch.Tensor]  # per step, (n, channel) straight-through one-hots of the recorded role
+    entropy: torch.Tensor  # (n,) summed over steps, agents and parts
+    goal: torch.Tensor  # (n, agents that see a goal)
+    words: list[torch.Tensor]  # per agent that speaks, (T, n) word indices said
+    role_obs: list[torch.Tensor] = field(default_factory=list)  # per step, (n, obs) of the recorded agent
+    role_choice: list[torch.Tensor] = field(default_factory=list)  # per step, (n, size) its channel's one-hots
+    role_actions: list[torch.Tensor] = field(default_factory=list)  # per step, (n, parts) its choices' indices
 
 
-def play(spec: CellSpec, speaker: nn.Module, listener: nn.Module, n: int, seed: int, gen: torch.Generator,
-         record: int | None = None, random_words: bool = False, greedy: bool = False) -> Episode:
-    """One episode of n worlds from reset seed `seed`; gradients flow where the caller allows them.
-    random_words: the speaker's words replaced by uniformly random ones (the intervention)."""
+def play(spec: CellSpec, actors: list[nn.Module], n: int, seed: int, gen: torch.Generator,
+         record: tuple[int, int] | None = None, random_words: bool = False, greedy: bool = False) -> Episode:
+    """One episode of n worlds from reset seed `seed`, one actor per agent; gradients flow where the caller
+    allows them. record: (agent, part) whose observations and choices to keep. random_words: every word replaced
+    by a uniformly random one (the intervention)."""
     world = worlds(n, options(spec))
     obs = world.reset(seed)
     goal = world.goal.clone()
     total, entropy = torch.zeros(n), torch.zeros(n)
-    words, role_obs, role_choice = [], [], []
+    agents = world.roles
+    words: list[list[torch.Tensor]] = [[] for a in agents if a.words]
+    episode = Episode(total, entropy, goal, [])
     for _ in range(knob(spec, "episode_len")):
-        word_logits = torch.zeros(n, WORDS) if random_words else speaker(obs[SPEAKER])
-        word, word_index, word_logp = choose(word_logits, gen, greedy and not random_words)
-        move, _, move_logp = choose(listener(obs[LISTENER]), gen, greedy)
-        if record is not None:
-            role_obs.append(obs[record])
-            role_choice.append(word if record == SPEAKER else move)
-        words.append(word_index)
-        entropy = entropy - (word_logp.exp() * word_logp).sum(-1) - (move_logp.exp() * move_logp).sum(-1)
-        total = total + world.step(word, move)
+        choices, speaking = [], 0
+        for i, (agent, actor) in enumerate(zip(agents, actors)):
+            logits = None if random_words and not agent.moves else actor(obs[i])  # a speaker only speaks
+            choice, indices, start = {}, [], 0
+            for part, size in agent.parts:
+                if part == "say" and random_words:
+                    part_logits, random = torch.zeros(n, size), True
+                else:
+                    part_logits, random = logits[:, start:start + size], False
+                start += size
+                one_hot, index, logp = choose(part_logits, gen, greedy and not random)
+                choice[part] = one_hot
+                indices.append(index)
+                entropy = entropy - (logp.exp() * logp).sum(-1)
+                if part == "say":
+                    words[speaking].append(index)
+                    speaking += 1
+            if record is not None and record[0] == i:
+                episode.role_obs.append(obs[i])
+                episode.role_choice.append(choice[agent.parts[record[1]][0]])
+                episode.role_actions.append(torch.stack(indices, 1))
+            choices.append(choice)
+        total = total + world.step(choices)
         obs = world.obs
-    return Episode(total, entropy, goal, torch.stack(words), role_obs, role_choice)
+    episode.returns, episode.entropy = total, entropy
+    episode.words = [torch.stack(w) for w in words]
+    return episode
 
 
 def team_loss(spec: CellSpec, episode: Episode) -> torch.Tensor:
-    T = knob(spec, "episode_len")
-    return -(episode.returns.mean() + knob(spec, "entropy") * episode.entropy.mean()) / T
+    return -(episode.returns.mean() + knob(spec, "entropy") * episode.entropy.mean()) / knob(spec, "episode_len")
 
 
 def word_mi(goal: torch.Tensor, words: torch.Tensor) -> float:
-    """Mutual information (nats) between the goal and the word said, over every step of every world."""
-    joint = np.zeros((WORDS, WORDS))
+    """Mutual information (nats) between a goal (n,) and the words said about it (T, n), over every step of
+    every world."""
+    vocabulary = int(words.max()) + 1 if words.numel() else 1
+    joint = np.zeros((LANDMARKS, vocabulary))
     np.add.at(joint, (goal.expand_as(words).reshape(-1).numpy(), words.reshape(-1).numpy()), 1.0)
     joint /= joint.sum()
     outer = joint.sum(1, keepdims=True) @ joint.sum(0, keepdims=True)
@@ -132,32 +169,36 @@ def word_mi(goal: torch.Tensor, words: torch.Tensor) -> float:
     return float((joint[seen] * np.log(joint[seen] / outer[seen])).sum())
 
 
+def team_mi(episode: Episode) -> float:
+    """The mean over the agents that speak of the MI between the goal each sees and its words."""
+    return float(np.mean([word_mi(episode.goal[:, i], w) for i, w in enumerate(episode.words)]))
+
+
 @torch.no_grad()
-def word_figures(spec: CellSpec, team: SpeakerListenerTeam, gen: torch.Generator) -> tuple[float, float]:
+def word_figures(spec: CellSpec, team: Team, gen: torch.Generator) -> tuple[float, float]:
     """(MI goal → word, return lost when every word is random) of a team, on eval_episodes worlds, the
     intervention on the same reset seed and action draws."""
     n, seed, action_seed = spec.eval_episodes, draw_seed(gen), draw_seed(gen)
-    own = play(spec, team.speaker, team.listener, n, seed, torch.Generator().manual_seed(action_seed))
-    rand = play(spec, team.speaker, team.listener, n, seed, torch.Generator().manual_seed(action_seed),
-                random_words=True)
-    return word_mi(own.goal, own.words), float(own.returns.mean() - rand.returns.mean())
+    own = play(spec, list(team.actors), n, seed, torch.Generator().manual_seed(action_seed))
+    rand = play(spec, list(team.actors), n, seed, torch.Generator().manual_seed(action_seed), random_words=True)
+    return team_mi(own), float(own.returns.mean() - rand.returns.mean())
 
 
 # ---- the contract's functions -------------------------------------------------------------------------------
 def new_agents(spec, seed):
-    return seeded(seed, lambda: SpeakerListenerTeam(knob(spec, "hidden")))
+    return seeded(seed, lambda: Team(roles(spec), knob(spec, "hidden")))
 
 
 def train_base(spec, seed, progress=None):
     """The team through the differentiable world for base_train_steps episodes of base_worlds worlds.
-    Score: the goal → word mutual information in nats, 0 when random words cost the team less than
-    vmas_speaker_listener_accept_drop (a listener that ignores the words: no word convention)."""
+    Score: the goal → word mutual information in nats, 0 when random words cost the team less than accept_drop
+    (agents that ignore the words: no word convention)."""
     team = new_agents(spec, seed)
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(team.parameters(), lr=knob(spec, "base_lr"))
     steps = spec.base_train_steps
     for step in range(steps):
-        episode = play(spec, team.speaker, team.listener, knob(spec, "base_worlds"), draw_seed(gen), gen)
+        episode = play(spec, list(team.actors), knob(spec, "base_worlds"), draw_seed(gen), gen)
         opt.zero_grad(set_to_none=True)
         team_loss(spec, episode).backward()
         opt.step()
@@ -170,88 +211,99 @@ def train_base(spec, seed, progress=None):
 
 @torch.no_grad()
 def paired(spec, base, n, gen):
-    """n (observation, choice) pairs of the new agent's role: one uniform step of each of n base episodes,
+    """n (observation, choices) pairs of the new agent's role: one uniform step of each of n base episodes,
     PAIRED_WORLDS episodes at a time."""
     r = role(spec)
-    T = knob(spec, "episode_len")
+    agent = roles(spec)[r[0]]
     obs_rows, act_rows = [], []
     for _ in range(math.ceil(n / PAIRED_WORLDS)):
-        seed, steps = draw_seed(gen), torch.randint(T, (PAIRED_WORLDS,), generator=gen)
-        episode = play(spec, base.speaker, base.listener, PAIRED_WORLDS, seed, gen, record=r)
+        seed, steps = draw_seed(gen), torch.randint(knob(spec, "episode_len"), (PAIRED_WORLDS,), generator=gen)
+        episode = play(spec, list(base.actors), PAIRED_WORLDS, seed, gen, record=r)
         rows = torch.arange(PAIRED_WORLDS)
         obs_rows.append(torch.stack(episode.role_obs)[steps, rows])
-        act_rows.append(torch.stack(episode.role_choice)[steps, rows].argmax(-1))
-    width = SPEAKER_OBS if r == SPEAKER else LISTENER_OBS
+        act_rows.append(torch.stack(episode.role_actions)[steps, rows])
     if not obs_rows:
-        return {"obs": torch.zeros(0, width), "action": torch.zeros(0, dtype=torch.long)}
+        return {"obs": torch.zeros(0, agent.obs), "action": torch.zeros(0, len(agent.parts), dtype=torch.long)}
     return {"obs": torch.cat(obs_rows)[:n], "action": torch.cat(act_rows)[:n]}
 
 
 @torch.no_grad()
-def _role_rows(spec: CellSpec, team: SpeakerListenerTeam, size: int, gen: torch.Generator, r: int):
-    """The role's observations and choices (one-hot) on every step of the team's episodes, `size` rows."""
+def _role_rows(spec: CellSpec, team: Team, size: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The role's observations and channel choices (exact one-hots) on every step of the team's episodes."""
+    r = role(spec)
+    agent = roles(spec)[r[0]]
+    width = agent.parts[r[1]][1]
     T = knob(spec, "episode_len")
     obs_rows, choice_rows, count = [], [], 0
     while count < size:
         n = min(MAX_WORLDS, math.ceil((size - count) / T))
-        episode = play(spec, team.speaker, team.listener, n, draw_seed(gen), gen, record=r)
+        episode = play(spec, list(team.actors), n, draw_seed(gen), gen, record=r)
         obs_rows.append(torch.cat(episode.role_obs))
-        choice_rows.append(F.one_hot(torch.cat(episode.role_choice).argmax(-1), WORDS if r == SPEAKER else N_MOVES)
-                           .float())  # exact one-hots (straight-through ones differ by rounding)
+        # exact one-hots: straight-through ones differ from them by rounding
+        choice_rows.append(F.one_hot(torch.cat(episode.role_choice).argmax(-1), width).float())
         count += n * T
-    width = SPEAKER_OBS if r == SPEAKER else LISTENER_OBS
-    dim = WORDS if r == SPEAKER else N_MOVES
     if not obs_rows:
-        return torch.zeros(0, width), torch.zeros(0, dim)
+        return torch.zeros(0, agent.obs), torch.zeros(0, width)
     return torch.cat(obs_rows)[:size], torch.cat(choice_rows)[:size]
 
 
 def unpaired(spec, base, size, gen):
     """The base's choices on the new agent's channel (one-hot words or moves) on every step of base episodes."""
-    return {"channel": _role_rows(spec, base, size, gen, role(spec))[1]}
+    return {"channel": _role_rows(spec, base, size, gen)[1]}
 
 
 def self_play_step(spec, agents, state, gen):
-    """One episode of batch_size worlds of the new team through the differentiable world; its channel
-    outputs are the role's straight-through choices on every step."""
-    r = role(spec)
-    episode = play(spec, agents.speaker, agents.listener, spec.batch_size, draw_seed(gen), gen, record=r)
+    """One episode of batch_size worlds of the new team through the differentiable world; its channel outputs
+    are the role's straight-through choices on every step."""
+    episode = play(spec, list(agents.actors), spec.batch_size, draw_seed(gen), gen, record=role(spec))
     return SelfPlayOut(loss=team_loss(spec, episode), outputs={"channel": torch.cat(episode.role_choice)},
                        info={"reward": float(episode.returns.mean().detach()) / knob(spec, "episode_len")})
 
 
+def _part_logits(spec: CellSpec, agents: Team, obs: torch.Tensor) -> list[torch.Tensor]:
+    index = role(spec)[0]
+    out, start = agents.agent(index)(obs), 0
+    parts = []
+    for _, size in roles(spec)[index].parts:
+        parts.append(out[:, start:start + size])
+        start += size
+    return parts
+
+
 def paired_loss(spec, agents, paired):
-    return F.cross_entropy(agents.agent(role(spec))(paired["obs"]), paired["action"])
+    """Cross-entropy of each of the role's choices against the base's."""
+    return sum(F.cross_entropy(logits, paired["action"][:, j])
+               for j, logits in enumerate(_part_logits(spec, agents, paired["obs"])))
 
 
 def convention_outputs(spec, agents, n, gen):
     """n straight-through channel choices (with grad) of the new agent on its role's observations in the new
     team's own episodes."""
-    r = role(spec)
-    obs, _ = _role_rows(spec, agents, n, gen, r)
-    return {"channel": choose(agents.agent(r)(obs), gen)[0]}
+    obs, _ = _role_rows(spec, agents, n, gen)
+    return {"channel": choose(_part_logits(spec, agents, obs)[role(spec)[1]], gen)[0]}
 
 
 @torch.no_grad()
 def evaluate(spec, base, agents, gen):
     """Eq. 1 with one new agent and the other compositions, on one reset seed and one action seed."""
-    r = role(spec)
+    r, part = role(spec)
     n, seed, action_seed = spec.eval_episodes, draw_seed(gen), draw_seed(gen)
 
-    def mean_return(speaker, listener, **kw) -> Episode:
-        return play(spec, speaker, listener, n, seed, torch.Generator().manual_seed(action_seed), **kw)
+    def episode(actors, **kw) -> Episode:
+        return play(spec, actors, n, seed, torch.Generator().manual_seed(action_seed), **kw)
 
-    new_in_role = (agents.speaker, base.listener) if r == SPEAKER else (base.speaker, agents.listener)
-    base_in_role = (base.speaker, agents.listener) if r == SPEAKER else (agents.speaker, base.listener)
-    base_team = mean_return(base.speaker, base.listener, record=r)
-    mixed = mean_return(*new_in_role)
-    random_words = mean_return(base.speaker, base.listener, random_words=True)
+    count = len(roles(spec))
+    new_in_role = [agents.agent(i) if i == r else base.agent(i) for i in range(count)]
+    base_in_role = [base.agent(i) if i == r else agents.agent(i) for i in range(count)]
+    base_team = episode(list(base.actors), record=(r, part))
+    mixed = episode(new_in_role)
+    random_words = episode(list(base.actors), random_words=True)
     obs = torch.cat(base_team.role_obs)
-    greedy = [team.agent(r)(obs).argmax(-1) for team in (base, agents)]
-    return {"mixed": float(mixed.returns.mean()), "mixed_swapped": float(mean_return(*base_in_role).returns.mean()),
-            "self_play_new": float(mean_return(agents.speaker, agents.listener).returns.mean()),
+    greedy = [_part_logits(spec, team, obs)[part].argmax(-1) for team in (base, agents)]
+    return {"mixed": float(mixed.returns.mean()), "mixed_swapped": float(episode(base_in_role).returns.mean()),
+            "self_play_new": float(episode(list(agents.actors)).returns.mean()),
             "self_play_base": float(base_team.returns.mean()),
             "channel_match": float((greedy[0] == greedy[1]).float().mean()),
-            "base_word_mi": word_mi(base_team.goal, base_team.words),
+            "base_word_mi": team_mi(base_team),
             "base_word_drop": float(base_team.returns.mean() - random_words.returns.mean()),
-            "mixed_word_mi": word_mi(mixed.goal, mixed.words)}
+            "mixed_word_mi": team_mi(mixed)}
