@@ -65,7 +65,11 @@ def test_the_world_steps_as_mpe2s_from_the_same_state():
             assert torch.allclose(listener.vel[0], vel, atol=1e-5)
             pos = torch.tensor(mpe_listener.p_pos, dtype=torch.float32) + 0.1 * vel
             assert torch.allclose(listener.pos[0], pos, atol=1e-5)
-            assert torch.equal(world.obs[1][0, -3:], torch.tensor(obs["listener_0"][-3:]))  # the heard word
+            # velocity, landmarks relative to the listener (apart by its extra dt·velocity), the heard word
+            assert torch.allclose(world.obs[1][0, :2], vel, atol=1e-5)
+            assert torch.allclose(world.obs[1][0, 2:8], torch.tensor(obs["listener_0"][2:8]) - 0.1 * vel.repeat(3),
+                                  atol=1e-5)
+            assert torch.equal(world.obs[1][0, -3:], torch.tensor(obs["listener_0"][-3:]))
             assert torch.allclose(world.obs[0][0], torch.tensor(obs["speaker_0"]))  # the goal's colour
             goal_pos = vm.landmarks[goal].state.pos[0]
             assert math.isclose(float(reward[0]), -float((listener.pos[0] - goal_pos).pow(2).sum()), rel_tol=1e-5)
@@ -103,6 +107,9 @@ def test_the_reference_world_steps_as_mpe2s_from_the_same_state():
                 assert torch.allclose(state.vel[0], vel, atol=1e-5)
                 assert torch.allclose(state.pos[0], torch.tensor(mpe_state.p_pos, dtype=torch.float32) + 0.1 * vel,
                                       atol=1e-5)
+                assert torch.allclose(world.obs[i][0, :2], vel, atol=1e-5)
+                assert torch.allclose(world.obs[i][0, 2:8], torch.tensor(obs[f"agent_{i}"][2:8]) - 0.1 * vel.repeat(3),
+                                      atol=1e-5)  # landmarks relative to the agent, apart by its dt·velocity
                 assert torch.allclose(world.obs[i][0, 8:], torch.tensor(obs[f"agent_{i}"][8:]))  # colour, word
             mine = -sum(float((vm.agents[1 - i].state.pos[0] - vm.landmarks[goals[i]].state.pos[0]).norm())
                         for i in range(2))
@@ -190,6 +197,23 @@ def test_the_return_reaches_the_speaker_through_the_world():
     assert torch.equal(silent.returns, episode.returns.detach())  # the gradient changes nothing forward
 
 
+@pytest.mark.parametrize("domain, role", [(NAME, "listener_0"), (NAME, "speaker_0"), (REF, "agent_1")])
+def test_the_adversarys_outputs_train_the_new_agent_alone(domain, role):
+    """Self-play's channel outputs carry gradient into the new agent's actor only: not, through the world and
+    the heard words, into its partner (nor into its own earlier steps), as in the PettingZoo adapter."""
+    spec = smoke(domain, **{f"{domain}_new_agent": role})
+    agents = get_domain(domain).new_agents(spec, 1)
+    outputs = get_domain(domain).self_play_step(spec, agents, {}, torch.Generator().manual_seed(0)).outputs
+    (outputs["channel"] * torch.randn(outputs["channel"].shape, generator=torch.Generator().manual_seed(1))).sum().backward()
+    index = game.role(spec)[0]
+    for i, actor in enumerate(agents.actors):
+        grads = [p.grad for p in actor.parameters()]
+        if i == index:
+            assert all(g is not None and g.abs().sum() > 0 for g in grads)
+        else:
+            assert all(g is None or g.abs().sum() == 0 for g in grads)
+
+
 def test_word_figures_read_a_code_and_its_use():
     goal = torch.tensor([0, 1, 2, 0, 1, 2])
     assert math.isclose(game.word_mi(goal, goal.expand(4, 6)), math.log(3), rel_tol=1e-9)  # a perfect code
@@ -198,7 +222,7 @@ def test_word_figures_read_a_code_and_its_use():
                         rel_tol=1e-9)  # two goals share a word
 
 
-@pytest.mark.parametrize("drop, bar, score", [(2.0, 3.0, 0.0), (2.0, 1.0, 0.8), (-0.5, 0.0, 0.0)])
+@pytest.mark.parametrize("drop, bar, score", [(2.0, 3.0, game.UNUSED_WORDS), (2.0, 1.0, 0.8), (-0.5, 0.0, 0.8)])
 def test_a_base_scores_its_words_mi_only_when_the_listener_uses_them(monkeypatch, drop, bar, score):
     monkeypatch.setattr(game, "word_figures", lambda spec, team, gen: (0.8, drop))
     assert get_domain(NAME).train_base(smoke(vmas_speaker_listener_accept_drop=bar), seed=3)[1] == score
@@ -221,7 +245,7 @@ def test_the_channel_is_the_new_agents_choice(role, width):
     domain = get_domain(NAME)
     base, _ = domain.train_base(spec, seed=1)
     u = domain.unpaired(spec, base, 40, torch.Generator().manual_seed(0))["channel"]
-    assert u.shape == (40, width) and torch.equal(u.sum(-1), torch.ones(40))
+    assert u.shape == (40, width) and ((u == 0) | (u == 1)).all() and torch.equal(u.sum(-1), torch.ones(40))
     p = domain.paired(spec, base, 5, torch.Generator().manual_seed(0))
     assert p["obs"].shape == (5, 3 if role == "speaker_0" else 11) and p["action"].max() < width
 

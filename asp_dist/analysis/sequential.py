@@ -207,7 +207,8 @@ def e_value(y: np.ndarray, looks: Sequence[int], comparisons: Sequence[tuple[int
             if np.isnan(di):  # a lost trial (no base met its bar): no bet
                 path.append((w_long, w_short))
                 continue
-            scale = float(np.median(np.abs(d[:i][~np.isnan(d[:i])]))) if i else 0.0
+            prior = d[:i][~np.isnan(d[:i])]
+            scale = float(np.median(np.abs(prior))) if prior.size else 0.0
             if scale > 0:
                 x = float(np.tanh(di / scale))
                 mu = float(np.mean(xs)) if xs else 0.0

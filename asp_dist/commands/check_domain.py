@@ -33,6 +33,7 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
     for what, step in steps:
         try:
             done = step()
+            summary = f": {cell_summary(done, domain)}" if isinstance(done, dict) else ""
         except ContractError as err:
             print(f"asp-dist: error: domain {args.name!r} breaks the contract: {err}", file=sys.stderr)
             return 1
@@ -42,16 +43,19 @@ def cmd_check_domain(args: argparse.Namespace) -> int:
             print(f"asp-dist: error: domain {args.name!r}: {what} failed: {type(err).__name__}: {err}",
                   file=sys.stderr)
             return 1
-        print(f"ok  {what}" + (f": {cell_summary(done, domain)}" if isinstance(done, dict) else ""))
+        print(f"ok  {what}{summary}")
     print(f"domain {args.name}: passes the contract (smoke spec: {', '.join(f'{k}={v}' for k, v in domain.smoke.items()) or 'defaults'})")
     return 0
 
 
 def cell_summary(row: dict, domain) -> str:
     """The base's score against its bar and the domain's metrics, from a cell's row."""
-    bar = f" (bar {row[domain.accept_field]:.4g})" if domain.accept_field and domain.accept_field in row else ""
-    metrics = ", ".join(f"{m} {row[f'eval_{m}']:.4g}" for m in domain.metrics if f"eval_{m}" in row)
-    return f"base score {row['base_score']:.4g}{bar}; {metrics}"
+    def number(value) -> str:
+        return f"{value:.4g}" if isinstance(value, (int, float)) else str(value)
+
+    bar = f" (bar {number(row[domain.accept_field])})" if domain.accept_field in row else ""
+    metrics = ", ".join(f"{m} {number(row[f'eval_{m}'])}" for m in domain.metrics if f"eval_{m}" in row)
+    return f"base score {number(row.get('base_score'))}{bar}; {metrics}"
 
 
 def check_trainers(name: str) -> None:

@@ -458,6 +458,12 @@ def _failure_record(path: AnyPath) -> dict[str, Any]:
     return {"cell_id": path.stem, "error": f"the failure record {path.name} {problem}", "times_failed": 0}
 
 
+def is_base_rejection(record: dict[str, Any]) -> bool:
+    """Whether a failure record says the cell's base met no bar in its attempts (BaseRejected): a failure that
+    a retry repeats, shared by every cell of the trial."""
+    return last_error_line(record, width=100_000).startswith("BaseRejected")
+
+
 def last_error_line(record: dict[str, Any], width: int = 160) -> str:
     """The last line of a failure record's error (the exception), for one-line listings."""
     lines = str(record.get("error", "")).strip().splitlines()

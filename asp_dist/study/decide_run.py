@@ -116,17 +116,18 @@ def stage_scores(plan: DecidePlan, rows: pd.DataFrame, stage: int) -> np.ndarray
     return trial_scores(blocks, reg.statistic)
 
 
-def lost_trials(sweep_dir: AnyPath, specs: list[CellSpec]) -> list[int]:
-    """The trials of `specs` whose base met no bar: every one of their cells failed with BaseRejected, which a
-    retry repeats (the same seeds train the same attempts). As in every study of the project, a lost trial counts
-    toward its stage and enters no comparison (it has no rows: the test reads its differences as zero)."""
+def stage_gaps(sweep_dir: AnyPath, specs: list[CellSpec]) -> tuple[list[int], list[CellSpec]]:
+    """(lost trials, the other cells still without a row) of a stage's cells. A trial is lost when its base met
+    no bar: every one of its cells failed with BaseRejected, which a retry repeats (the same seeds train the same
+    attempts). As in every study of the project a lost trial counts toward its stage and enters no comparison
+    (sequential.py: blocked-adastop adds zero for it in every draw, the e-value bets nothing on it)."""
     done, failed = ledger.finished_and_failed(sweep_dir, [s.cell_id for s in specs])
     records = store.failed_cells(sweep_dir) if failed else {}
     cells: dict[int, list[str]] = {}
     for spec in specs:
         cells.setdefault(spec.trial, []).append(spec.cell_id)
-    return sorted(t for t, ids in cells.items()
-                  if all(c in failed and store.last_error_line(records[c]).startswith("BaseRejected") for c in ids))
+    lost = sorted(t for t, ids in cells.items() if all(c in failed and store.is_base_rejection(records[c]) for c in ids))
+    return lost, [s for s in specs if s.cell_id not in done and s.trial not in lost]
 
 
 def judge(plan: DecidePlan, rows: pd.DataFrame, stage: int) -> SequentialResult:
@@ -199,18 +200,15 @@ def run_decide(plan: DecidePlan, options: RunOptions, stream: TextIO | None = No
         result = runner(dataclasses.replace(stage_plan, manifest=manifest), dataclasses.replace(options, extend=True),
                         stream)
         ran += 1
-        lost = lost_trials(sweep_dir, specs)
-        if result.failed or result.done < result.total:
-            done, _ = ledger.finished_and_failed(sweep_dir, [s.cell_id for s in specs])
-            missing = [s for s in specs if s.cell_id not in done and s.trial not in lost]
-            if missing:
-                stream.write(f"decide {plan.name}: stage {stage} has {len(missing)} cells without a row "
-                             f"({result.failed} failed); run the same command again to retry them before the test "
-                             f"looks\n")
-                return DecideResult(plan.name, sweep_dir, looks, False, False)
+        lost, missing = stage_gaps(sweep_dir, specs)
+        if missing:
+            stream.write(f"decide {plan.name}: stage {stage} has {len(missing)} cells without a row "
+                         f"({result.failed} failed); run the same command again to retry them before the test "
+                         f"looks\n")
+            return DecideResult(plan.name, sweep_dir, looks, False, False)
         if lost:
-            stream.write(f"decide {plan.name}: trial{'s' * (len(lost) > 1)} {', '.join(map(str, lost))} found no base "
-                         f"(lost: counted in the stage, in no comparison)\n")
+            stream.write(f"decide {plan.name}: lost so far (no base met its bar; counted in their stage, in no "
+                         f"comparison): trial{'s' * (len(lost) > 1)} {', '.join(map(str, lost))}\n")
         test = judge(plan, store.read_rows(sweep_dir), stage)
         now = [_look_record(plan, i + 1, look, looks[i]["trained"] if i < len(looks) else
                             [t for t in reg.treatments if t in needed])

@@ -357,7 +357,7 @@ def failure_causes(failed: Iterable[str], records: dict[str, dict[str, Any]], sp
     for cell_id in sorted(failed):
         line = store.last_error_line(records.get(cell_id, {}), width=100_000)
         spec = specs.get(cell_id, {})
-        if line.startswith("BaseRejected"):
+        if store.is_base_rejection(records.get(cell_id, {})):
             key: tuple = ("base", str(spec.get("domain")), spec.get("base_max_attempts"))
         else:
             key = ("error", _NUMBERS.sub("#", line))

@@ -94,7 +94,8 @@ class VMASDomain(GameDomain):
                  f"is at least this many nats (log 3 = 1.10: a perfect code) and random words cost at least "
                  f"{p}_accept_drop."),
             Knob(f"{p}_accept_drop", float, 3.0, "Base accepted only when replacing its words by uniformly random "
-                 "ones lowers the team's return per episode by at least this (the team uses the words)."),
+                 "ones lowers the team's return per episode by at least this (the team uses the words); 0: no "
+                 "such check."),
         ]
         cls.knobs = tuple(knobs)
         cls.accept_field = f"{p}_accept_mi"
@@ -125,7 +126,7 @@ class VMASDomain(GameDomain):
     def knob(self, spec: CellSpec, suffix: str) -> Any:
         return getattr(spec, f"{self.name}_{suffix}")
 
-    def role(self, spec: CellSpec) -> tuple[str, int]:
+    def channel_part(self, spec: CellSpec) -> tuple[str, int]:
         """The new agent's channel part and its size."""
         agent = next(a for a in SCENARIOS[self.scenario].agents if a.name == self.knob(spec, "new_agent"))
         if len(agent.parts) == 1:
@@ -144,17 +145,17 @@ class VMASDomain(GameDomain):
         require(self.knob(spec, "entropy") >= 0, f"{p}_entropy must be >= 0, got {self.knob(spec, 'entropy')}")
         require(spec.batch_size >= 1, f"batch_size must be >= 1 (worlds per self-play episode), got {spec.batch_size}")
         require(spec.paired <= POOL, f"paired must be <= {POOL} for {p}, got {spec.paired}")
-        self.role(spec)
+        self.channel_part(spec)
 
     def channel_dims(self, spec: CellSpec) -> dict[str, int]:
-        return {"channel": self.role(spec)[1]}
+        return {"channel": self.channel_part(spec)[1]}
 
     def tensor_sizes(self, spec: CellSpec) -> dict[str, int]:
         p = self.name
-        worlds = max(self.knob(spec, "base_worlds"), spec.batch_size, min(spec.eval_episodes, 4096))
+        worlds = max(self.knob(spec, "base_worlds"), spec.batch_size, spec.eval_episodes)  # evaluation: one batch
         hidden, steps = self.knob(spec, "hidden"), self.knob(spec, "episode_len")
         return {f"{p}_hidden²": hidden ** 2, f"worlds × {p}_episode_len × {p}_hidden": worlds * steps * hidden,
-                "unpaired_size × channel": spec.unpaired_size * self.role(spec)[1]}
+                "unpaired_size × channel": spec.unpaired_size * self.channel_part(spec)[1]}
 
 
 class VMASSpeakerListener(VMASDomain):
@@ -162,7 +163,7 @@ class VMASSpeakerListener(VMASDomain):
     scenario = "speaker_listener"
     new_agent = "listener_0"
     paper = PaperFacts(
-        metric_label="mixed-team return per 25-step episode (−distance², shared)",
+        metric_label="mixed-team return per episode (−distance², shared)",
         claim="does ASP help a new listener (or speaker) adopt the base team's words in MPE's speaker–listener?",
         in_paper=False,
     )
@@ -173,7 +174,7 @@ class VMASReference(VMASDomain):
     scenario = "reference"
     new_agent, channel = "agent_1", "say"
     paper = PaperFacts(
-        metric_label="mixed-team return per 25-step episode (−distance of each agent's partner, summed)",
+        metric_label="mixed-team return per episode (−distance of each agent's partner, summed)",
         claim="does ASP help a new agent adopt its partner's words when both agents speak (MPE simple_reference)?",
         in_paper=False,
     )

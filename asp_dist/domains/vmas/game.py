@@ -13,6 +13,7 @@ and the same action generator seed (common random numbers).
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -31,7 +32,9 @@ if TYPE_CHECKING:
 PAIRED_WORLDS = 32  # base episodes run together while P is collected: P(n) is a prefix of P(m) for n < m
 MAX_WORLDS = 1024  # worlds at most in one batch of data collection
 SEED_HIGH = 2**31 - 1
-_WORLDS: dict[tuple[int, WorldOptions], Worlds] = {}  # built once per (n, options) per process: reset reseeds them
+UNUSED_WORDS = -1.0  # a base's score when its team ignores its words: no bar (>= 0) accepts it
+WORLDS_CAP = 16  # batches of worlds kept per process, the least recently used dropped first
+_WORLDS: OrderedDict[tuple[int, WorldOptions], Worlds] = OrderedDict()  # reset reseeds them: safe to reuse
 
 
 def knob(spec: CellSpec, suffix: str) -> Any:
@@ -69,13 +72,16 @@ def options(spec: CellSpec) -> WorldOptions:
     name = scenario(spec)
     reward = getattr(spec, f"{spec.domain}_reward", SCENARIOS[name].rewards[0])  # a knob where there is a choice
     return WorldOptions(scenario=name, goal_per_world=knob(spec, "goal_per_world"), force=knob(spec, "force"),
-                        reward=reward, episode_len=knob(spec, "episode_len"))
+                        reward=reward)
 
 
 def worlds(n: int, opts: WorldOptions) -> Worlds:
     key = (n, opts)
     if key not in _WORLDS:
         _WORLDS[key] = Worlds(n, opts)
+        while len(_WORLDS) > WORLDS_CAP:
+            _WORLDS.popitem(last=False)
+    _WORLDS.move_to_end(key)
     return _WORLDS[key]
 
 
@@ -91,13 +97,17 @@ def draw_seed(gen: torch.Generator) -> int:
     return int(torch.randint(SEED_HIGH, (1,), generator=gen))
 
 
-def choose(logits: torch.Tensor, gen: torch.Generator, greedy: bool = False) -> tuple[torch.Tensor, torch.Tensor,
-                                                                                          torch.Tensor]:
-    """(straight-through one-hot, index, log-probabilities) of one choice per row."""
+def choose(logits: torch.Tensor, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(straight-through one-hot, index, log-probabilities) of one sampled choice per row."""
     logp = logits.log_softmax(-1)
     probs = logp.exp()
-    index = probs.argmax(-1) if greedy else torch.multinomial(probs.detach(), 1, generator=gen).view(-1)
-    return F.one_hot(index, probs.shape[-1]).to(probs.dtype) + probs - probs.detach(), index, logp
+    index = torch.multinomial(probs.detach(), 1, generator=gen).view(-1)
+    return straight_through(index, probs), index, logp
+
+
+def straight_through(index: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """Forward: the one-hot of `index`; backward: the gradient of `probs`."""
+    return F.one_hot(index, probs.shape[-1]).to(probs.dtype) + probs - probs.detach()
 
 
 @dataclass
@@ -107,14 +117,13 @@ class Episode:
     goal: torch.Tensor  # (n, agents that see a goal)
     words: list[torch.Tensor]  # per agent that speaks, (T, n) word indices said
     role_obs: list[torch.Tensor] = field(default_factory=list)  # per step, (n, obs) of the recorded agent
-    role_choice: list[torch.Tensor] = field(default_factory=list)  # per step, (n, size) its channel's one-hots
     role_actions: list[torch.Tensor] = field(default_factory=list)  # per step, (n, parts) its choices' indices
 
 
 def play(spec: CellSpec, actors: list[nn.Module], n: int, seed: int, gen: torch.Generator,
-         record: tuple[int, int] | None = None, random_words: bool = False, greedy: bool = False) -> Episode:
+         record: int | None = None, random_words: bool = False) -> Episode:
     """One episode of n worlds from reset seed `seed`, one actor per agent; gradients flow where the caller
-    allows them. record: (agent, part) whose observations and choices to keep. random_words: every word replaced
+    allows them. record: the agent whose observations and choices to keep. random_words: every word replaced
     by a uniformly random one (the intervention)."""
     world = worlds(n, options(spec))
     obs = world.reset(seed)
@@ -122,35 +131,29 @@ def play(spec: CellSpec, actors: list[nn.Module], n: int, seed: int, gen: torch.
     total, entropy = torch.zeros(n), torch.zeros(n)
     agents = world.roles
     words: list[list[torch.Tensor]] = [[] for a in agents if a.words]
-    episode = Episode(total, entropy, goal, [])
+    role_obs, role_actions = [], []
     for _ in range(knob(spec, "episode_len")):
         choices, speaking = [], 0
         for i, (agent, actor) in enumerate(zip(agents, actors)):
             logits = None if random_words and not agent.moves else actor(obs[i])  # a speaker only speaks
             choice, indices, start = {}, [], 0
             for part, size in agent.parts:
-                if part == "say" and random_words:
-                    part_logits, random = torch.zeros(n, size), True
-                else:
-                    part_logits, random = logits[:, start:start + size], False
+                part_logits = torch.zeros(n, size) if part == "say" and random_words else logits[:, start:start + size]
                 start += size
-                one_hot, index, logp = choose(part_logits, gen, greedy and not random)
+                one_hot, index, logp = choose(part_logits, gen)
                 choice[part] = one_hot
                 indices.append(index)
                 entropy = entropy - (logp.exp() * logp).sum(-1)
                 if part == "say":
                     words[speaking].append(index)
                     speaking += 1
-            if record is not None and record[0] == i:
-                episode.role_obs.append(obs[i])
-                episode.role_choice.append(choice[agent.parts[record[1]][0]])
-                episode.role_actions.append(torch.stack(indices, 1))
+            if record == i:
+                role_obs.append(obs[i])
+                role_actions.append(torch.stack(indices, 1))
             choices.append(choice)
         total = total + world.step(choices)
         obs = world.obs
-    episode.returns, episode.entropy = total, entropy
-    episode.words = [torch.stack(w) for w in words]
-    return episode
+    return Episode(total, entropy, goal, [torch.stack(w) for w in words], role_obs, role_actions)
 
 
 def team_loss(spec: CellSpec, episode: Episode) -> torch.Tensor:
@@ -191,8 +194,8 @@ def new_agents(spec, seed):
 
 def train_base(spec, seed, progress=None):
     """The team through the differentiable world for base_train_steps episodes of base_worlds worlds.
-    Score: the goal → word mutual information in nats, 0 when random words cost the team less than accept_drop
-    (agents that ignore the words: no word convention)."""
+    Score: the goal → word mutual information in nats; UNUSED_WORDS (below any bar) when random words cost the
+    team less than accept_drop > 0 (agents that ignore the words: no word convention)."""
     team = new_agents(spec, seed)
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(team.parameters(), lr=knob(spec, "base_lr"))
@@ -206,7 +209,8 @@ def train_base(spec, seed, progress=None):
             progress("base", step + 1, steps, {})
     team.eval()
     mi, drop = word_figures(spec, team, gen)
-    return team, mi if drop >= knob(spec, "accept_drop") else 0.0
+    used = knob(spec, "accept_drop") == 0 or drop >= knob(spec, "accept_drop")
+    return team, mi if used else UNUSED_WORDS
 
 
 @torch.no_grad()
@@ -218,7 +222,7 @@ def paired(spec, base, n, gen):
     obs_rows, act_rows = [], []
     for _ in range(math.ceil(n / PAIRED_WORLDS)):
         seed, steps = draw_seed(gen), torch.randint(knob(spec, "episode_len"), (PAIRED_WORLDS,), generator=gen)
-        episode = play(spec, list(base.actors), PAIRED_WORLDS, seed, gen, record=r)
+        episode = play(spec, list(base.actors), PAIRED_WORLDS, seed, gen, record=r[0])
         rows = torch.arange(PAIRED_WORLDS)
         obs_rows.append(torch.stack(episode.role_obs)[steps, rows])
         act_rows.append(torch.stack(episode.role_actions)[steps, rows])
@@ -237,10 +241,9 @@ def _role_rows(spec: CellSpec, team: Team, size: int, gen: torch.Generator) -> t
     obs_rows, choice_rows, count = [], [], 0
     while count < size:
         n = min(MAX_WORLDS, math.ceil((size - count) / T))
-        episode = play(spec, list(team.actors), n, draw_seed(gen), gen, record=r)
+        episode = play(spec, list(team.actors), n, draw_seed(gen), gen, record=r[0])
         obs_rows.append(torch.cat(episode.role_obs))
-        # exact one-hots: straight-through ones differ from them by rounding
-        choice_rows.append(F.one_hot(torch.cat(episode.role_choice).argmax(-1), width).float())
+        choice_rows.append(F.one_hot(torch.cat(episode.role_actions)[:, r[1]], width).float())  # exact one-hots
         count += n * T
     if not obs_rows:
         return torch.zeros(0, agent.obs), torch.zeros(0, width)
@@ -253,10 +256,15 @@ def unpaired(spec, base, size, gen):
 
 
 def self_play_step(spec, agents, state, gen):
-    """One episode of batch_size worlds of the new team through the differentiable world; its channel outputs
-    are the role's straight-through choices on every step."""
-    episode = play(spec, list(agents.actors), spec.batch_size, draw_seed(gen), gen, record=role(spec))
-    return SelfPlayOut(loss=team_loss(spec, episode), outputs={"channel": torch.cat(episode.role_choice)},
+    """One episode of batch_size worlds of the new team through the differentiable world. Its channel outputs
+    are the role's choices on every step, straight-through from the role's actor on its observations taken as
+    given: the adversary's gradient trains what the new agent does with what it sees, not, through the world,
+    its partners or its own earlier steps (as in the PettingZoo adapter, whose observations carry none)."""
+    r, part = role(spec)
+    episode = play(spec, list(agents.actors), spec.batch_size, draw_seed(gen), gen, record=r)
+    probs = _part_logits(spec, agents, torch.cat(episode.role_obs).detach())[part].softmax(-1)
+    channel = straight_through(torch.cat(episode.role_actions)[:, part], probs)
+    return SelfPlayOut(loss=team_loss(spec, episode), outputs={"channel": channel},
                        info={"reward": float(episode.returns.mean().detach()) / knob(spec, "episode_len")})
 
 
@@ -295,7 +303,7 @@ def evaluate(spec, base, agents, gen):
     count = len(roles(spec))
     new_in_role = [agents.agent(i) if i == r else base.agent(i) for i in range(count)]
     base_in_role = [base.agent(i) if i == r else agents.agent(i) for i in range(count)]
-    base_team = episode(list(base.actors), record=(r, part))
+    base_team = episode(list(base.actors), record=r)
     mixed = episode(new_in_role)
     random_words = episode(list(base.actors), random_words=True)
     obs = torch.cat(base_team.role_obs)

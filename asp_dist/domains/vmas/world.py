@@ -47,7 +47,6 @@ class WorldOptions:
     goal_per_world: bool = True
     force: float = 5.0
     reward: str = "dist2"
-    episode_len: int = 25
 
 
 def scenario_class():
