@@ -23,7 +23,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from asp_dist.core.contract import SelfPlayOut
-from asp_dist.domains.vmas.world import LANDMARKS, SCENARIOS, AgentRole, Worlds, WorldOptions
+from asp_dist.domains.vmas.scenarios import LANDMARKS, SCENARIOS, AgentRole
+from asp_dist.domains.vmas.world import WorldOptions, Worlds
 from asp_dist.nn import seeded
 
 if TYPE_CHECKING:
