@@ -36,6 +36,28 @@ def one_hots(word: int, move: int, words: int = 3) -> list[dict[str, torch.Tenso
             {"move": F.one_hot(torch.tensor([move]), 5).float()}]
 
 
+def vmas_at_mpe2_state(raw, seed: int, options: WorldOptions) -> Worlds:
+    """One VMAS world with every agent and landmark where mpe2's world `raw` has it (agents at rest, as after
+    reset)."""
+    world = Worlds(1, options)
+    world.reset(seed)
+    for vmas_entity, mpe_entity in zip(world.env.world.agents + world.env.world.landmarks,
+                                       raw.agents + raw.landmarks):
+        vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
+    return world
+
+
+def assert_moved_as_in_mpe2(state, mpe_state, obs: torch.Tensor, mpe_obs) -> torch.Tensor:
+    """A moving agent after the same step in both: the same velocity, its position apart by dt × velocity, its
+    observation's velocity and landmarks (relative to it, so apart by the same) as mpe2's. Its velocity."""
+    vel = torch.tensor(mpe_state.p_vel, dtype=torch.float32)
+    assert torch.allclose(state.vel[0], vel, atol=1e-5)
+    assert torch.allclose(state.pos[0], torch.tensor(mpe_state.p_pos, dtype=torch.float32) + 0.1 * vel, atol=1e-5)
+    assert torch.allclose(obs[:2], vel, atol=1e-5)
+    assert torch.allclose(obs[2:8], torch.tensor(mpe_obs[2:8]) - 0.1 * vel.repeat(3), atol=1e-5)
+    return vel
+
+
 def test_the_world_steps_as_mpe2s_from_the_same_state():
     """From mpe2's reset state, with the same moves and words, every step gives the same velocity, heard word
     and goal colour, and VMAS's position is mpe2's plus dt × velocity (its integrator moves with the new
@@ -50,26 +72,16 @@ def test_the_world_steps_as_mpe2s_from_the_same_state():
         mpe.reset(seed=seed)
         raw = mpe.unwrapped.world
         goal = [i for i, lm in enumerate(raw.landmarks) if lm is raw.agents[0].goal_b][0]
-        world = Worlds(1, WorldOptions())
-        world.reset(seed)
+        world = vmas_at_mpe2_state(raw, seed, WorldOptions())
         vm = world.env.world
-        for vmas_entity, mpe_entity in zip(vm.agents + vm.landmarks, raw.agents + raw.landmarks):
-            vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
         world.env.scenario.goal[:] = goal  # (1, 1): the speaker's
         for _ in range(25):
             move, word = int(rng.integers(5)), int(rng.integers(3))
             obs, rew, *_ = mpe.step({"speaker_0": word, "listener_0": move})
             reward = world.step(one_hots(word, move))
             listener, mpe_listener = vm.agents[1].state, raw.agents[1].state
-            vel = torch.tensor(mpe_listener.p_vel, dtype=torch.float32)
-            assert torch.allclose(listener.vel[0], vel, atol=1e-5)
-            pos = torch.tensor(mpe_listener.p_pos, dtype=torch.float32) + 0.1 * vel
-            assert torch.allclose(listener.pos[0], pos, atol=1e-5)
-            # velocity, landmarks relative to the listener (apart by its extra dt·velocity), the heard word
-            assert torch.allclose(world.obs[1][0, :2], vel, atol=1e-5)
-            assert torch.allclose(world.obs[1][0, 2:8], torch.tensor(obs["listener_0"][2:8]) - 0.1 * vel.repeat(3),
-                                  atol=1e-5)
-            assert torch.equal(world.obs[1][0, -3:], torch.tensor(obs["listener_0"][-3:]))
+            assert_moved_as_in_mpe2(listener, mpe_listener, world.obs[1][0], obs["listener_0"])
+            assert torch.equal(world.obs[1][0, -3:], torch.tensor(obs["listener_0"][-3:]))  # the heard word
             assert torch.allclose(world.obs[0][0], torch.tensor(obs["speaker_0"]))  # the goal's colour
             goal_pos = vm.landmarks[goal].state.pos[0]
             assert math.isclose(float(reward[0]), -float((listener.pos[0] - goal_pos).pow(2).sum()), rel_tol=1e-5)
@@ -90,11 +102,8 @@ def test_the_reference_world_steps_as_mpe2s_from_the_same_state():
         mpe.reset(seed=seed)
         raw = mpe.unwrapped.world
         goals = [[j for j, lm in enumerate(raw.landmarks) if lm is agent.goal_b][0] for agent in raw.agents]
-        world = Worlds(1, WorldOptions(scenario="reference"))
-        world.reset(seed)
+        world = vmas_at_mpe2_state(raw, seed, WorldOptions(scenario="reference"))
         vm = world.env.world
-        for vmas_entity, mpe_entity in zip(vm.agents + vm.landmarks, raw.agents + raw.landmarks):
-            vmas_entity.set_pos(torch.tensor(mpe_entity.state.p_pos, dtype=torch.float32).view(1, 2), batch_index=None)
         world.env.scenario.goal[0] = torch.tensor(goals)
         for _ in range(25):
             moves, words = rng.integers(5, size=2), rng.integers(10, size=2)
@@ -102,14 +111,7 @@ def test_the_reference_world_steps_as_mpe2s_from_the_same_state():
             reward = world.step([{"move": F.one_hot(torch.tensor([int(moves[i])]), 5).float(),
                                   "say": F.one_hot(torch.tensor([int(words[i])]), 10).float()} for i in range(2)])
             for i in range(2):
-                state, mpe_state = vm.agents[i].state, raw.agents[i].state
-                vel = torch.tensor(mpe_state.p_vel, dtype=torch.float32)
-                assert torch.allclose(state.vel[0], vel, atol=1e-5)
-                assert torch.allclose(state.pos[0], torch.tensor(mpe_state.p_pos, dtype=torch.float32) + 0.1 * vel,
-                                      atol=1e-5)
-                assert torch.allclose(world.obs[i][0, :2], vel, atol=1e-5)
-                assert torch.allclose(world.obs[i][0, 2:8], torch.tensor(obs[f"agent_{i}"][2:8]) - 0.1 * vel.repeat(3),
-                                      atol=1e-5)  # landmarks relative to the agent, apart by its dt·velocity
+                assert_moved_as_in_mpe2(vm.agents[i].state, raw.agents[i].state, world.obs[i][0], obs[f"agent_{i}"])
                 assert torch.allclose(world.obs[i][0, 8:], torch.tensor(obs[f"agent_{i}"][8:]))  # colour, word
             mine = -sum(float((vm.agents[1 - i].state.pos[0] - vm.landmarks[goals[i]].state.pos[0]).norm())
                         for i in range(2))
