@@ -379,6 +379,39 @@ def test_a_trial_whose_checkpoint_is_gone_starts_over_instead_of_failing(trainab
     assert_rows(rows, direct_rows([unit], store.bases_dir(sweep_dir)))
 
 
+def test_each_members_trackers_have_its_end_before_its_row_is_written(trainable, tmp_path, monkeypatch):
+    """A cell with a row is never trained again, so nothing would resend its last points or its end: the trial
+    hands both to the tracker hub, and has the hub's answer, before writing the row (a driver killed between
+    the two leaves a cell that trains again, never a tracker run short of its tail)."""
+    from asp_dist.sweep import trial
+    from asp_dist.tracking.hub import Feed
+
+    sweep_tune, _ = trainable
+    specs = [s for s in expand(write_space(tmp_path, paired=(2,), signaling=False)) if s.trial == 0]  # 3 cells
+    (unit,) = make_units(specs, Packing("trial", 21))
+    sweep_dir = tmp_path / "exp"
+    seen = []
+
+    class Hub:  # an actor handle's shape
+        class points:
+            remote = staticmethod(lambda batch: None)
+
+        class finish:
+            @staticmethod
+            def remote(cell_id, final, step, error):
+                seen.append((cell_id, bool(final), error, cell_id in cell_files(sweep_dir)))
+                return cell_id
+
+    def answered(ref, seconds):
+        seen.append(("answered", ref))
+        return True
+
+    monkeypatch.setattr(trial, "_feed", lambda sweep, cells: Feed(Hub(), only=cells, wait=answered))
+    sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e9)})
+    assert sorted(cell_files(sweep_dir)) == sorted(unit.cell_ids)
+    assert seen == [x for cid in unit.cell_ids for x in ((cid, True, None, False), ("answered", cid))]
+
+
 @pytest.mark.parametrize("domain", PACKED_DOMAINS)
 def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trainable(domain, trainable, tmp_path,
                                                                                        monkeypatch):

@@ -294,6 +294,34 @@ def test_the_feed_sends_in_batches_and_only_its_cells():
     assert [(cid, [p["step"] for p in pts]) for cid, pts in batch] == [(SPEC.cell_id, [2.0, 4.0])]
 
 
+@pytest.mark.parametrize("answers", [True, False])
+def test_a_cells_end_waits_for_the_hub_and_a_silent_hub_is_given_up_on(answers, capsys):
+    """Feed.finish returns once the hub has taken the cell's end (its caller writes the row only then), waiting
+    on that call's answer; a hub that does not answer within finish_wait_s gets one warning and is not waited
+    for longer."""
+    calls = []
+
+    class FakeHub:
+        class points:
+            remote = staticmethod(lambda batch: calls.append("points") or "points-ref")
+
+        class finish:
+            remote = staticmethod(lambda *a: calls.append("finish") or "finish-ref")
+
+    def wait(ref, seconds):
+        calls.append(("wait", ref, seconds))
+        return answers
+
+    feed = Feed(FakeHub(), every_s=3600, wait=wait, finish_wait_s=7)
+    feed([(SPEC, points([2]))])
+    assert feed.finish(SPEC.cell_id, {}, 100) is answers
+    assert calls == ["points", "finish", ("wait", "finish-ref", 7)]
+    err = capsys.readouterr().err
+    assert (err == "") is answers
+    if not answers:
+        assert err.startswith("asp-dist: warning: the tracker hub did not take cell ") and "within 7 s" in err
+
+
 # ---- a real TensorBoard serves the cells' scalars ---------------------------------------------------------
 @pytest.mark.slow
 def test_tensorboard_serves_every_cell_on_loopback(tmp_path):

@@ -9,7 +9,8 @@ What a worker does with a unit (asp_dist.sweep.packing.Unit, as ``unit_config`` 
    meets its bar fails that base's members only;
 4. train the live members through the one cell pipeline (asp_dist.training.pipeline: a lone cell on its
    lone trainer, a pack on its domain's packed trainer), checkpointing through ``tune.report``;
-5. write each member without a row as a cell (row, curve), and record each failed member once.
+5. write each member without a row as a cell (curve, then its end to the trackers, then its row), and
+   record each failed member once.
 
 A pack trains whole even when some members already have a row (so that every member's row is the one an
 uninterrupted run writes); only members without a row are written. A deterministic failure (a bad spec, a
@@ -164,16 +165,16 @@ def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None,
         if pack_id is not None:
             row["pack"] = pack_id
         store.write_curve(sweep_dir, row, result.curve or [])
+        finals[spec.cell_id] = final_metrics(row, FIELD_NAMES)
+        if feed is not None:  # before the row: a cell with a row is never run again to resend its end
+            feed.finish(spec.cell_id, finals[spec.cell_id], spec.train_steps)
         written += store.write_row(sweep_dir, row, unit["sweep_id"])
         store.clear_failure(sweep_dir, spec.cell_id)
-        finals[spec.cell_id] = final_metrics(row, FIELD_NAMES)
-        if feed is not None:
-            feed.finish(spec.cell_id, finals[spec.cell_id], spec.train_steps)
     for spec in specs:
         if spec.cell_id in failures and spec.cell_id in todo:
-            store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
             if feed is not None:
                 feed.finish(spec.cell_id, {}, 0, failures[spec.cell_id])
+            store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
     report(final_report(unit, finals, written, failures))
 
 
@@ -218,7 +219,19 @@ def _feed(sweep: str, cells: set[str]) -> Feed | None:
             _HUBS[sweep] = ray.get_actor(hub_name(sweep))
         except ValueError:
             _HUBS[sweep] = None
-    return None if _HUBS[sweep] is None else Feed(_HUBS[sweep], only=cells)
+    return None if _HUBS[sweep] is None else Feed(_HUBS[sweep], only=cells, wait=_answered)
+
+
+def _answered(ref: Any, seconds: float) -> bool:
+    """Whether an actor call has answered within `seconds` (a hub that died answers with an error: no)."""
+    ready, _ = ray.wait([ref], timeout=seconds)
+    if not ready:
+        return False
+    try:
+        ray.get(ready[0])
+    except ray.exceptions.RayError:
+        return False
+    return True
 
 
 def _restored_state(sweep_dir: AnyPath, name: str) -> dict | None:

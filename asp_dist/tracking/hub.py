@@ -10,19 +10,26 @@ What the hub guarantees:
 - per tracker and cell, only points newer than the last step the run holds: a retried or resumed cell
   resends its restored curve and the hub passes on what the tracker has not seen (after a driver restart the
   tracker reads its last step back from its own storage);
-- a tracker that raises is switched off for the rest of the run with one warning; the cells go on.
+- a tracker that raises is switched off for the rest of the run with one warning; the cells go on;
+- a cell's row is written only once the hub has taken its end (``Feed.finish`` waits for it, at most
+  FINISH_WAIT_S): a cell with a row has its whole curve and its end in every tracker, also when the driver is
+  killed a moment later (a resume never runs that cell again, so nothing else would send them).
 """
 
 from __future__ import annotations
 
+import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from asp_dist.tracking import tracker_class
 from asp_dist.tracking.base import STOPPED, Tracker, TrackingSettings
 from asp_dist.tracking.cells import CellInfo
 
 SEND_EVERY_S = 1.0  # a worker sends its buffered points at most this often (and at every cell's end)
+# How long a worker waits for the hub to take a cell's end before writing its row anyway (a hub held up by a
+# server that went away: MLflow gives up after about 3 x --connect-timeout, then is switched off).
+FINISH_WAIT_S = 90.0
 
 
 def hub_name(sweep: str) -> str:
@@ -118,11 +125,15 @@ class Hub:
 class Feed:
     """A worker's side: as the pipeline's on_points (asp_dist.training.pipeline.PointsFn) it buffers each
     cell's new points (of the cells in `only`, when given) and sends them to the hub at most every
-    SEND_EVERY_S; ``finish`` sends what is left and the cell's end. Sending never waits for the hub (actor
-    calls are asynchronous, and kept in order per worker)."""
+    SEND_EVERY_S, without waiting (actor calls are asynchronous, and kept in order per worker). ``finish``
+    sends what is left and the cell's end, and waits until the hub has taken them, so that the caller writes
+    the cell's row only after its trackers have its end. `wait(ref, seconds) -> bool` waits for an actor call's
+    answer (ray.wait, in a sweep)."""
 
-    def __init__(self, hub: Any, every_s: float = SEND_EVERY_S, only: set[str] | None = None):
+    def __init__(self, hub: Any, every_s: float = SEND_EVERY_S, only: set[str] | None = None,
+                 wait: Callable[[Any, float], bool] | None = None, finish_wait_s: float = FINISH_WAIT_S):
         self.hub, self.every_s, self.only = hub, every_s, only
+        self.wait, self.finish_wait_s = wait, finish_wait_s
         self.buffer: dict[str, list[dict[str, Any]]] = {}
         self.sent_at = time.monotonic()
 
@@ -139,6 +150,13 @@ class Feed:
             self.buffer = {}
         self.sent_at = time.monotonic()
 
-    def finish(self, cell_id: str, final: dict[str, float], step: int, error: str | None = None) -> None:
+    def finish(self, cell_id: str, final: dict[str, float], step: int, error: str | None = None) -> bool:
+        """Send the cell's last points and its end; True once the hub has taken them (False: it did not
+        answer within finish_wait_s, and the caller goes on without it)."""
         self.flush()
-        self.hub.finish.remote(cell_id, final, step, error)
+        answer = self.hub.finish.remote(cell_id, final, step, error)
+        if self.wait is None or self.wait(answer, self.finish_wait_s):
+            return True
+        print(f"asp-dist: warning: the tracker hub did not take cell {cell_id}'s end within "
+              f"{self.finish_wait_s:g} s (or is gone); its row is written without it", file=sys.stderr, flush=True)
+        return False
