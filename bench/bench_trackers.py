@@ -18,6 +18,12 @@ that median over rounds -- the figure to hold against a budget on a noisy machin
 seconds the whole machine spent during each run (/proc/stat), with the same paired view: steadier than wall
 time on a VM, and only meaningful on an otherwise idle machine. W&B runs offline (WANDB_MODE=offline). Record
 the load average: figures taken on a busy machine say little.
+
+`--against COMMIT` is the A/B of a change: every variant also runs on COMMIT's code (a temporary git worktree,
+put first on PYTHONPATH of the sweep and its Ray workers), in the same alternating rounds, and each variant is
+also compared round by round with itself on COMMIT's code (this checkout's "json" over "json@COMMIT").
+
+    python bench/bench_trackers.py --repeats 8 --workloads smoke --variants none,json --against 223a963c
 """
 
 from __future__ import annotations
@@ -65,7 +71,8 @@ def machine_cpu_seconds() -> float:
     return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
 
 
-def run_once(workload: str, variant: str, space: str, work: Path) -> tuple[float, float]:
+def run_once(workload: str, variant: str, space: str, work: Path, code: Path | None = None) -> tuple[float, float]:
+    """One fresh sweep; `code`: run another checkout's asp_dist (first on PYTHONPATH, and the working directory)."""
     results = Path(tempfile.mkdtemp(prefix=f"{workload}-{variant}-", dir=work))
     cmd = [sys.executable, "-m", "asp_dist.cli", "sweep", space, "--name", "b", "--results", str(results)]
     if workload == "particles-packed":
@@ -74,8 +81,10 @@ def run_once(workload: str, variant: str, space: str, work: Path) -> tuple[float
         cmd += ["--logger", variant]
     env = dict(os.environ, OMP_NUM_THREADS="1", WANDB_MODE="offline", WANDB_SILENT="true",
                ASP_DIST_TUNE_RESULT_LOGS="0" if variant == "no-tune-logs" else "1")
+    if code is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(code), *filter(None, [os.environ.get("PYTHONPATH")])])
     start, cpu_start = time.perf_counter(), machine_cpu_seconds()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=code)
     seconds, cpu = time.perf_counter() - start, machine_cpu_seconds() - cpu_start
     if done.returncode != 0:
         raise SystemExit(f"{workload}/{variant} failed:\n{done.stderr[-2000:]}")
@@ -94,39 +103,48 @@ def paired_overhead(times: list[float], baseline: list[float], resamples: int = 
             "paired_ci": [float(np.percentile(medians, 2.5)), float(np.percentile(medians, 97.5))]}
 
 
+def worktree(commit: str, where: Path) -> Path:
+    """COMMIT's code checked out (detached) at `where`, for --against."""
+    repo = Path(__file__).resolve().parent.parent
+    subprocess.run(["git", "-C", str(repo), "worktree", "add", "--detach", "-q", str(where), commit], check=True)
+    return where
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2, help="rounds (alternating order); median per variant")
     ap.add_argument("--workloads", default="smoke,particles-packed")
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--against", metavar="COMMIT", help="also run every variant on COMMIT's code (A/B of a change)")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
-    variants = args.variants.split(",")
     load_before = os.getloadavg()
     out = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "load_before": load_before,
-           "workloads": {}}
+           "against": args.against, "workloads": {}}
     with tempfile.TemporaryDirectory(prefix="bench-trackers-") as tmp:
         work = Path(tmp)
+        # arm name -> (logger variant, code to run: None = this checkout)
+        arms: dict[str, tuple[str, Path | None]] = {v: (v, None) for v in args.variants.split(",")}
+        if args.against:
+            old = worktree(args.against, work / "against")
+            arms.update({f"{v}@{args.against}": (v, old) for v in args.variants.split(",")})
         spaces = {"smoke": "smoke", "particles-packed": str(work / "particles.toml")}
         (work / "particles.toml").write_text(PARTICLES)
-        for workload in args.workloads.split(","):
-            times: dict[str, list[float]] = {v: [] for v in variants}
-            cpus: dict[str, list[float]] = {v: [] for v in variants}
-            for r in range(args.repeats):
-                for variant in variants if r % 2 == 0 else variants[::-1]:
-                    wall, cpu = run_once(workload, variant, spaces[workload], work)
-                    times[variant].append(wall)
-                    cpus[variant].append(cpu)
-                    print(f"{workload} {variant}: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
-            base = statistics.median(times["none"]) if "none" in times else None
-            out["workloads"][workload] = {
-                v: {"seconds": ts, "median_s": statistics.median(ts),
-                    "overhead": None if base is None else statistics.median(ts) / base - 1,
-                    **({} if base is None or v == "none" else paired_overhead(ts, times["none"])),
-                    "cpu_seconds": cpus[v], "median_cpu_s": statistics.median(cpus[v]),
-                    **({} if base is None or v == "none" else
-                       {f"cpu_{k}": x for k, x in paired_overhead(cpus[v], cpus["none"]).items()})}
-                for v, ts in times.items()}
+        try:
+            for workload in args.workloads.split(","):
+                times: dict[str, list[float]] = {a: [] for a in arms}
+                cpus: dict[str, list[float]] = {a: [] for a in arms}
+                for r in range(args.repeats):
+                    for arm in list(arms) if r % 2 == 0 else list(arms)[::-1]:
+                        variant, code = arms[arm]
+                        wall, cpu = run_once(workload, variant, spaces[workload], work, code)
+                        times[arm].append(wall)
+                        cpus[arm].append(cpu)
+                        print(f"{workload} {arm}: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
+                out["workloads"][workload] = {arm: summary(arm, arms, times, cpus) for arm in arms}
+        finally:
+            if args.against:
+                subprocess.run(["git", "worktree", "remove", "--force", str(work / "against")], cwd=Path(__file__).parent)
     out["load_after"] = os.getloadavg()
     print(f"load average before {load_before[0]:.2f}, after {out['load_after'][0]:.2f}")
     print("| workload | logger | median wall (s) | overhead | paired wall: median of per-round ratios (95 % CI) "
@@ -139,12 +157,37 @@ def main() -> None:
         return f"{100 * rec[f'{prefix}paired_overhead']:+.1f} % ({100 * lo:+.1f} … {100 * hi:+.1f} %)"
 
     for workload, by in out["workloads"].items():
-        for v, rec in by.items():
-            over = "" if rec["overhead"] is None or v == "none" else f"{100 * rec['overhead']:+.1f} %"
-            print(f"| {workload} | {v} | {rec['median_s']:.1f} | {over} | {paired(rec)} | {rec['median_cpu_s']:.1f} "
+        for arm, rec in by.items():
+            over = "" if rec["overhead"] is None else f"{100 * rec['overhead']:+.1f} %"
+            print(f"| {workload} | {arm} | {rec['median_s']:.1f} | {over} | {paired(rec)} | {rec['median_cpu_s']:.1f} "
                   f"| {paired(rec, 'cpu_')} |")
+        if args.against:
+            print(f"\n| workload | logger | this code over {args.against}: paired wall (95 % CI) | paired CPU (95 % CI) |"
+                  "\n|---|---|---|---|")
+            for arm, rec in by.items():
+                if "change" in rec:
+                    print(f"| {workload} | {arm} | {paired(rec['change'])} | {paired(rec['change'], 'cpu_')} |")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
+
+
+def summary(arm: str, arms: dict[str, tuple[str, Path | None]], times: dict[str, list[float]],
+            cpus: dict[str, list[float]]) -> dict:
+    """An arm's figures: medians, and round by round against the no-logger arm of the same code (and, for this
+    checkout's arms under --against, against the same variant on the other code: "change")."""
+    variant, code = arms[arm]
+    base = next((a for a, (v, c) in arms.items() if v == "none" and c == code), None)
+    rec = {"seconds": times[arm], "median_s": statistics.median(times[arm]), "cpu_seconds": cpus[arm],
+           "median_cpu_s": statistics.median(cpus[arm]), "overhead": None}
+    if base is not None and base != arm:
+        rec["overhead"] = statistics.median(times[arm]) / statistics.median(times[base]) - 1
+        rec.update(paired_overhead(times[arm], times[base]))
+        rec.update({f"cpu_{k}": x for k, x in paired_overhead(cpus[arm], cpus[base]).items()})
+    other = next((a for a, (v, c) in arms.items() if v == variant and c is not None), None)
+    if code is None and other is not None:
+        rec["change"] = {**paired_overhead(times[arm], times[other]),
+                         **{f"cpu_{k}": x for k, x in paired_overhead(cpus[arm], cpus[other]).items()}}
+    return rec
 
 
 if __name__ == "__main__":
