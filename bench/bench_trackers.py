@@ -19,9 +19,10 @@ seconds the whole machine spent during each run (/proc/stat), with the same pair
 time on a VM, and only meaningful on an otherwise idle machine. W&B runs offline (WANDB_MODE=offline). Record
 the load average: figures taken on a busy machine say little.
 
-`--against COMMIT` is the A/B of a change: every variant also runs on COMMIT's code (a temporary git worktree,
-put first on PYTHONPATH of the sweep and its Ray workers), in the same alternating rounds, and each variant is
-also compared round by round with itself on COMMIT's code (this checkout's "json" over "json@COMMIT").
+`--against COMMIT` is the A/B of a change: every variant also runs on COMMIT's code (its asp_dist/ and
+tune_spaces/ exported to a temporary directory, put first on PYTHONPATH of the sweep and its Ray workers), in the
+same alternating rounds after one untimed warm-up run per code, and each variant is also compared round by round
+with itself on COMMIT's code (this checkout's "json" over "json@COMMIT"). The JSON records both revisions.
 
     python bench/bench_trackers.py --repeats 8 --workloads smoke --variants none,json --against 223a963c
 """
@@ -103,10 +104,19 @@ def paired_overhead(times: list[float], baseline: list[float], resamples: int = 
             "paired_ci": [float(np.percentile(medians, 2.5)), float(np.percentile(medians, 97.5))]}
 
 
-def worktree(commit: str, where: Path) -> Path:
-    """COMMIT's code checked out (detached) at `where`, for --against."""
-    repo = Path(__file__).resolve().parent.parent
-    subprocess.run(["git", "-C", str(repo), "worktree", "add", "--detach", "-q", str(where), commit], check=True)
+REPO = Path(__file__).resolve().parent.parent
+
+
+def git(*args: str) -> str:
+    return subprocess.run(["git", "-C", str(REPO), *args], check=True, capture_output=True, text=True).stdout.strip()
+
+
+def export(commit: str, where: Path) -> Path:
+    """COMMIT's asp_dist/ and tune_spaces/ at `where` (what a sweep of it imports and reads), for --against."""
+    where.mkdir()
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", commit, "asp_dist", "tune_spaces"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(where)], input=archive, check=True)
     return where
 
 
@@ -119,32 +129,33 @@ def main() -> None:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
     load_before = os.getloadavg()
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no", "--", "asp_dist", "tune_spaces"))
     out = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine_info(), "load_before": load_before,
-           "against": args.against, "workloads": {}}
+           "code": git("rev-parse", "HEAD") + (" with uncommitted changes" if dirty else ""),
+           "against": git("rev-parse", args.against) if args.against else None, "workloads": {}}
     with tempfile.TemporaryDirectory(prefix="bench-trackers-") as tmp:
         work = Path(tmp)
         # arm name -> (logger variant, code to run: None = this checkout)
         arms: dict[str, tuple[str, Path | None]] = {v: (v, None) for v in args.variants.split(",")}
         if args.against:
-            old = worktree(args.against, work / "against")
+            old = export(args.against, work / "against")
             arms.update({f"{v}@{args.against}": (v, old) for v in args.variants.split(",")})
         spaces = {"smoke": "smoke", "particles-packed": str(work / "particles.toml")}
         (work / "particles.toml").write_text(PARTICLES)
-        try:
-            for workload in args.workloads.split(","):
-                times: dict[str, list[float]] = {a: [] for a in arms}
-                cpus: dict[str, list[float]] = {a: [] for a in arms}
-                for r in range(args.repeats):
-                    for arm in list(arms) if r % 2 == 0 else list(arms)[::-1]:
-                        variant, code = arms[arm]
-                        wall, cpu = run_once(workload, variant, spaces[workload], work, code)
-                        times[arm].append(wall)
-                        cpus[arm].append(cpu)
-                        print(f"{workload} {arm}: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
-                out["workloads"][workload] = {arm: summary(arm, arms, times, cpus) for arm in arms}
-        finally:
-            if args.against:
-                subprocess.run(["git", "worktree", "remove", "--force", str(work / "against")], cwd=Path(__file__).parent)
+        for workload in args.workloads.split(","):
+            if args.against:  # untimed: each code's bytecode and imports warm before the first timed round
+                for code in (None, old):
+                    run_once(workload, "none", spaces[workload], work, code)
+            times: dict[str, list[float]] = {a: [] for a in arms}
+            cpus: dict[str, list[float]] = {a: [] for a in arms}
+            for r in range(args.repeats):
+                for arm in list(arms) if r % 2 == 0 else list(arms)[::-1]:
+                    variant, code = arms[arm]
+                    wall, cpu = run_once(workload, variant, spaces[workload], work, code)
+                    times[arm].append(wall)
+                    cpus[arm].append(cpu)
+                    print(f"{workload} {arm}: {wall:.1f} s wall, {cpu:.1f} s CPU", file=sys.stderr)
+            out["workloads"][workload] = {arm: summary(arm, arms, times, cpus) for arm in arms}
     out["load_after"] = os.getloadavg()
     print(f"load average before {load_before[0]:.2f}, after {out['load_after'][0]:.2f}")
     print("| workload | logger | median wall (s) | overhead | paired wall: median of per-round ratios (95 % CI) "

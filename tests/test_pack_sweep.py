@@ -403,13 +403,13 @@ def test_each_members_trackers_have_its_end_before_its_row_is_written(trainable,
                 return cell_id
 
     def answered(ref, seconds):
-        seen.append(("answered", ref))
+        seen.append(("answered", ref, ref in cell_files(sweep_dir)))
         return True
 
     monkeypatch.setattr(trial, "_feed", lambda sweep, cells: Feed(Hub(), only=cells, wait=answered))
     sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e9)})
     assert sorted(cell_files(sweep_dir)) == sorted(unit.cell_ids)
-    assert seen == [x for cid in unit.cell_ids for x in ((cid, True, None, False), ("answered", cid))]
+    assert seen == [x for cid in unit.cell_ids for x in ((cid, True, None, False), ("answered", cid, False))]
 
 
 @pytest.mark.parametrize("domain", PACKED_DOMAINS)

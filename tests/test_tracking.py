@@ -320,6 +320,54 @@ def test_a_cells_end_waits_for_the_hub_and_a_silent_hub_is_given_up_on(answers, 
     assert (err == "") is answers
     if not answers:
         assert err.startswith("asp-dist: warning: the tracker hub did not take cell ") and "within 7 s" in err
+    # The next cell's end: waited for again only if the hub answered the last one.
+    feed.finish("another-cell", {}, 100)
+    assert calls[3:] == ["finish", ("wait", "finish-ref", 7)] if answers else calls[3:] == ["finish"]
+    assert capsys.readouterr().err == ""
+
+
+def test_a_worker_waits_on_the_hubs_answer_and_stops_waiting_for_a_silent_hub(monkeypatch):
+    """In a sweep the feed waits with ray.wait and reads the answer: an answer is taken, no answer in time or
+    an actor error (the hub died with its driver) is not; a hub that left one end unanswered is not waited for
+    again by that worker process."""
+    import ray
+
+    from asp_dist.sweep import trial
+
+    ready, errors = [], []
+
+    def fake_wait(refs, timeout):
+        assert timeout == 7
+        return (refs, []) if ready else ([], refs)
+
+    def fake_get(ref):
+        if errors:
+            raise ray.exceptions.RayActorError()
+        return None
+
+    monkeypatch.setattr(trial.ray, "wait", fake_wait)
+    monkeypatch.setattr(trial.ray, "get", fake_get)
+    assert trial._answered("ref", 7) is False  # no answer in time
+    ready.append(1)
+    assert trial._answered("ref", 7) is True
+    errors.append(1)
+    assert trial._answered("ref", 7) is False  # the hub is gone
+
+    class Hub:
+        class points:
+            remote = staticmethod(lambda batch: None)
+
+        class finish:
+            remote = staticmethod(lambda *a: "ref")
+
+    monkeypatch.setattr(trial.ray, "is_initialized", lambda: True)
+    monkeypatch.setitem(trial._HUBS, "s", Hub())
+    monkeypatch.setattr(trial, "_SILENT_HUBS", set())
+    feed = trial._feed("s", {SPEC.cell_id})
+    assert feed.wait is trial._answered
+    monkeypatch.setattr(feed, "wait", lambda ref, seconds: False)
+    trial._finish(feed, "s", SPEC.cell_id, {}, 100)
+    assert trial._feed("s", {SPEC.cell_id}).wait is None
 
 
 # ---- a real TensorBoard serves the cells' scalars ---------------------------------------------------------

@@ -167,13 +167,13 @@ def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None,
         store.write_curve(sweep_dir, row, result.curve or [])
         finals[spec.cell_id] = final_metrics(row, FIELD_NAMES)
         if feed is not None:  # before the row: a cell with a row is never run again to resend its end
-            feed.finish(spec.cell_id, finals[spec.cell_id], spec.train_steps)
+            _finish(feed, unit["sweep_id"], spec.cell_id, finals[spec.cell_id], spec.train_steps)
         written += store.write_row(sweep_dir, row, unit["sweep_id"])
         store.clear_failure(sweep_dir, spec.cell_id)
     for spec in specs:
         if spec.cell_id in failures and spec.cell_id in todo:
             if feed is not None:
-                feed.finish(spec.cell_id, {}, 0, failures[spec.cell_id])
+                _finish(feed, unit["sweep_id"], spec.cell_id, {}, 0, failures[spec.cell_id])
             store.record_failure(sweep_dir, spec.cell_id, spec.domain, spec.method, failures[spec.cell_id])
     report(final_report(unit, finals, written, failures))
 
@@ -194,6 +194,7 @@ def final_report(unit: dict[str, Any], finals: dict[str, dict[str, float]], writ
 
 
 _HUBS: dict[str, Any] = {}  # sweep -> its hub's handle (or None), looked up once per worker process and Ray session
+_SILENT_HUBS: set[str] = set()  # sweeps whose hub once left a cell's end unanswered: not waited for again here
 
 
 def _both(first: Callable[[Any], None] | None, second: Callable[[Any], None] | None) -> Callable[[Any], None] | None:
@@ -219,7 +220,16 @@ def _feed(sweep: str, cells: set[str]) -> Feed | None:
             _HUBS[sweep] = ray.get_actor(hub_name(sweep))
         except ValueError:
             _HUBS[sweep] = None
-    return None if _HUBS[sweep] is None else Feed(_HUBS[sweep], only=cells, wait=_answered)
+    if _HUBS[sweep] is None:
+        return None
+    return Feed(_HUBS[sweep], only=cells, wait=None if sweep in _SILENT_HUBS else _answered)
+
+
+def _finish(feed: Feed, sweep: str, cell_id: str, final: dict[str, float], step: int, error: str | None = None) -> None:
+    """The cell's end to its trackers, waited for (see Feed.finish); a hub that leaves it unanswered is not
+    waited for again by this worker process."""
+    if not feed.finish(cell_id, final, step, error):
+        _SILENT_HUBS.add(sweep)
 
 
 def _answered(ref: Any, seconds: float) -> bool:

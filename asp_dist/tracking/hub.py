@@ -2,8 +2,8 @@
 
 In a sweep the hub is a Ray actor on the driver's node (asp_dist.sweep.tune starts it, named after the
 sweep: ``hub_name``), so only that node needs the trackers' libraries, files and network; workers anywhere
-in the cluster find it by name and send to it without waiting (``Feed``). A plain ``Hub`` works without Ray
-(the tests drive it directly).
+in the cluster find it by name and send it points without waiting (``Feed``); only a cell's end is waited
+for. A plain ``Hub`` works without Ray (the tests drive it directly).
 
 What the hub guarantees:
 - one tracker run per cell, opened at the cell's first point (or its end, for a cell that failed first);
@@ -13,7 +13,9 @@ What the hub guarantees:
 - a tracker that raises is switched off for the rest of the run with one warning; the cells go on;
 - a cell's row is written only once the hub has taken its end (``Feed.finish`` waits for it, at most
   FINISH_WAIT_S): a cell with a row has its whole curve and its end in every tracker, also when the driver is
-  killed a moment later (a resume never runs that cell again, so nothing else would send them).
+  killed a moment later (a resume never runs that cell again, so nothing else would send them). The wait
+  includes what the hub has queued before it (other workers' points, slow trackers' calls). A hub that does
+  not answer in time, or is gone, is not waited for again by that worker process (one warning).
 """
 
 from __future__ import annotations
@@ -27,8 +29,9 @@ from asp_dist.tracking.base import STOPPED, Tracker, TrackingSettings
 from asp_dist.tracking.cells import CellInfo
 
 SEND_EVERY_S = 1.0  # a worker sends its buffered points at most this often (and at every cell's end)
-# How long a worker waits for the hub to take a cell's end before writing its row anyway (a hub held up by a
-# server that went away: MLflow gives up after about 3 x --connect-timeout, then is switched off).
+# How long a worker waits for the hub to take a cell's end before writing its row anyway, once: a hub held up
+# past it (a tracker server that went away: MLflow gives up after about 3 x --connect-timeout) is not waited
+# for again by that worker.
 FINISH_WAIT_S = 90.0
 
 
@@ -128,7 +131,7 @@ class Feed:
     SEND_EVERY_S, without waiting (actor calls are asynchronous, and kept in order per worker). ``finish``
     sends what is left and the cell's end, and waits until the hub has taken them, so that the caller writes
     the cell's row only after its trackers have its end. `wait(ref, seconds) -> bool` waits for an actor call's
-    answer (ray.wait, in a sweep)."""
+    answer (asp_dist.sweep.trial's, in a sweep); None: nothing is waited for."""
 
     def __init__(self, hub: Any, every_s: float = SEND_EVERY_S, only: set[str] | None = None,
                  wait: Callable[[Any, float], bool] | None = None, finish_wait_s: float = FINISH_WAIT_S):
@@ -151,12 +154,14 @@ class Feed:
         self.sent_at = time.monotonic()
 
     def finish(self, cell_id: str, final: dict[str, float], step: int, error: str | None = None) -> bool:
-        """Send the cell's last points and its end; True once the hub has taken them (False: it did not
-        answer within finish_wait_s, and the caller goes on without it)."""
+        """Send the cell's last points and its end, and wait for the hub to take them. False when it did not
+        answer within finish_wait_s (or is gone): one warning, and this feed waits for it no more."""
         self.flush()
         answer = self.hub.finish.remote(cell_id, final, step, error)
         if self.wait is None or self.wait(answer, self.finish_wait_s):
             return True
+        self.wait = None
         print(f"asp-dist: warning: the tracker hub did not take cell {cell_id}'s end within "
-              f"{self.finish_wait_s:g} s (or is gone); its row is written without it", file=sys.stderr, flush=True)
+              f"{self.finish_wait_s:g} s (or is gone); its row is written without it, and this worker no longer "
+              f"waits for the hub", file=sys.stderr, flush=True)
         return False
