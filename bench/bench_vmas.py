@@ -4,6 +4,7 @@
     python bench/bench_vmas.py                       # env steps only, about 1 minute
     python bench/bench_vmas.py --cells               # and one default cell of each domain (several minutes)
     python bench/bench_vmas.py --cells --json docs/bench-results/vmas-<date>.json
+    python bench/bench_vmas.py --profile             # where one VMAS self-play episode's CPU goes, and nothing else
 
 Needs the `pettingzoo` and `vmas` extras. Rows:
 
@@ -151,13 +152,61 @@ def cells(trial: int) -> list[dict]:
     return out
 
 
+def profile_episode(episodes: int = 40) -> dict[str, float]:
+    """CPU milliseconds of one VMAS self-play episode at the domain's defaults (OSP, 64 worlds x 25 steps,
+    forward through the world, backward, Adam step), split by cProfile into the backward pass, VMAS's World.step,
+    the agents' networks and the rest."""
+    import cProfile
+    import pstats
+
+    from asp_dist.domains.vmas import game as vm
+
+    spec = CellSpec(domain=VMAS, method="osp").resolved()
+    team = vm.new_agents(spec, 0)
+    opt = torch.optim.Adam(team.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+
+    def episode():
+        loss = vm.self_play_step(spec, team, {}, gen).loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    for _ in range(5):
+        episode()
+    profiler, start = cProfile.Profile(), time.process_time()
+    profiler.enable()
+    for _ in range(episodes):
+        episode()
+    profiler.disable()
+    total = (time.process_time() - start) / episodes * 1e3
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive calls, tottime, cumtime, callers)
+
+    def cumulative(match) -> float:
+        return sum(v[3] for k, v in stats.items() if match(k)) / episodes * 1e3
+
+    parts = {"backward": cumulative(lambda k: k[0] == "~" and "run_backward" in k[2]),  # the C++ engine only
+             "vmas_world_step": cumulative(lambda k: k[0].endswith("vmas/simulator/core.py") and k[2] == "step"),
+             "networks_forward": cumulative(lambda k: k[0].endswith("torch/nn/modules/module.py")
+                                            and k[2] == "_call_impl"),
+             "sampling": cumulative(lambda k: "multinomial" in k[2])}
+    return {"cpu_ms_per_episode_profiled": total, **{f"{k}_ms": v for k, v in parts.items()}}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", action="store_true", help="also time one default cell of each method and domain")
     parser.add_argument("--trial", type=int, default=900, help="trial of the timed cells (a calibration id < 1000)")
     parser.add_argument("--json", type=Path, help="write the figures here")
+    parser.add_argument("--profile", action="store_true", help="only: where one VMAS episode's CPU goes (cProfile)")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.profile:
+        parts = profile_episode()
+        print(f"load average {os.getloadavg()[0]:.2f}; one VMAS self-play episode, CPU ms (under cProfile):")
+        for k, v in parts.items():
+            print(f"  {k:32s} {v:7.1f}")
+        return 0
     result = {"machine": machine_info(), "load_before": os.getloadavg()[0], "env_steps": [], "learner": {}}
     print(f"load average {result['load_before']:.2f}; world-steps per CPU-second, one thread")
     for n in (1, 64, 1024):
