@@ -170,6 +170,11 @@ class Domain(ABC):
         module = self._sibling("figures")
         return module.draw(payloads, out_dir) if module is not None else ([], [])
 
+    def knob(self, spec: CellSpec, suffix: str) -> Any:
+        """This domain's knob `suffix` of a spec: the field ``<name>_<suffix>`` (for cards whose subclasses
+        name the domain, so the field name is not written out)."""
+        return getattr(spec, f"{self.name}_{suffix}")
+
     def validate(self, spec: CellSpec) -> None:
         """Raise SpecError for a knob value this domain cannot run with."""
 

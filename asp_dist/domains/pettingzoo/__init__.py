@@ -214,9 +214,6 @@ class PettingZooDomain(Domain):
     def trainers(self) -> tuple[type, ...]:
         return ()  # the reference trainer
 
-    def knob(self, spec: CellSpec, suffix: str) -> Any:
-        return getattr(spec, f"{self.name}_{suffix}")
-
     def env_kwargs(self, spec: CellSpec) -> tuple[tuple[str, Any], ...]:
         decl = self.declaration
         kwargs = dict(decl.env_kwargs)

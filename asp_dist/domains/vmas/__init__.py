@@ -123,9 +123,6 @@ class VMASDomain(GameDomain):
     def trainers(self) -> tuple[type, ...]:
         return ()  # the reference trainer
 
-    def knob(self, spec: CellSpec, suffix: str) -> Any:
-        return getattr(spec, f"{self.name}_{suffix}")
-
     def channel_part(self, spec: CellSpec) -> tuple[str, int]:
         """The new agent's channel part and its size."""
         agent = next(a for a in SCENARIOS[self.scenario].agents if a.name == self.knob(spec, "new_agent"))
