@@ -199,6 +199,11 @@ class PackCase:
     pack_state: Callable[[Any, int], list[torch.Tensor]] = _no_state
     trainer_state: Callable[[Trainer], list[torch.Tensor]] = _no_state
     rows: Callable[[CellSpec], int] = _rows  # rows of the largest batch of an update (grad_terms)
+    # two mates that give a pack of the same shapes beside an OSP member (paired 3): its update must not see
+    # which one it has (a PC mate rides along in the self-play rows of the particle and lever packs)
+    same_shape_mates: tuple[dict, dict] = (
+        dict(method="pc", paired=3, trial=1),
+        dict(method="asp", paired=2, trial=2, adversary_loss="non_saturating", unpaired_size=50))
 
     def grad_terms(self, s: CellSpec, agents: torch.nn.Module) -> int:
         """n of float32_tol for a member's gradients: batch rows × the widest layer its gradient
@@ -219,12 +224,13 @@ class PackCase:
 
     def member_data(self, s: CellSpec) -> tuple[dict, dict]:
         """P and U of a member from a fixed (untrained) base; copies of one draw per (base fields,
-        paired count, U's size) -- what they depend on, as run_pack's data cache has it (sampling a
+        paired count, U's size, the domain's paired_fields and unpaired_fields) -- what they depend on, as run_pack's data cache has it (sampling a
         particle P rolls out 4,096 episodes: the tests' costliest setup)."""
         adversary = method_weights(s).needs_adversary
-        key = (s.base_key, s.paired, s.unpaired_size if adversary else None)
+        domain = get_domain(self.domain)
+        key = (s.base_key, s.paired, s.unpaired_size if adversary else None,
+               *(getattr(s, f) for f in (*domain.paired_fields, *domain.unpaired_fields)))
         if key not in _DATA:
-            domain = get_domain(self.domain)
             base = domain.new_agents(s, 99)
             gen = torch.Generator().manual_seed(s.paired * 7919 + s.trial)
             paired = domain.paired(s, base, s.paired, gen) if s.paired else {}
@@ -364,7 +370,15 @@ VAE = PackCase(
     tiny_cells=TINY_CELLS + [dict(method="asp", paired=3, trial=0, vae_adversary_input="z")],
 )
 
-CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE)}
+# A VMAS pack plays the self-play members' worlds only (a PC member has none), so the mates of one shape are
+# two that play; smoke-sized otherwise, as a plugin's generic case.
+VMAS = [PackCase(name, small={**get_domain(name).smoke, "train_steps": 8},
+                 same_shape_mates=(dict(method="osp", paired=3, trial=1),
+                                   dict(method="asp", paired=2, trial=2, adversary_loss="non_saturating",
+                                        unpaired_size=50)))
+        for name in ("vmas_speaker_listener", "vmas_reference") if name in REGISTRY]
+
+CASES = {case.domain: case for case in (PARTICLES, LEVERS, VAE, *VMAS)}
 
 
 def other_value(value: Any) -> Any:

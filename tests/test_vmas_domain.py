@@ -17,6 +17,7 @@ pytest.importorskip("vmas")
 
 from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.domains.vmas import game  # noqa: E402
+from asp_dist.domains.vmas.scenarios import SCENARIOS  # noqa: E402
 from asp_dist.domains.vmas.world import MOVES, Worlds, WorldOptions  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 
@@ -184,6 +185,33 @@ def test_an_episode_starts_every_world_afresh_from_its_seed():
     world.reset(5)
     assert torch.equal(world.obs[1][:, -3:], torch.zeros(8, 3))  # no word heard from the last episode
     assert torch.equal(world.obs[1][:, :2], torch.zeros(8, 2))  # at rest
+
+
+@pytest.mark.parametrize("scenario", sorted(SCENARIOS))
+@pytest.mark.parametrize("goal_per_world", [True, False])
+def test_a_reset_is_vmass_and_each_block_of_a_packed_batch_is_its_own_lone_batch(scenario, goal_per_world):
+    """Worlds.reset (VMAS's World reset directly) gives what Environment.reset gives; a batch reset block by block
+    from one seed each (a packed trainer's) holds, block for block, the worlds of lone batches from those seeds."""
+    options = WorldOptions(scenario=scenario, goal_per_world=goal_per_world)
+    direct, through_env, packed = Worlds(8, options), Worlds(8, options), Worlds(24, options)
+    lone = direct.reset(5)
+    assert all(torch.equal(a, b) for a, b in zip(lone, through_env.reference_reset(5)))
+    assert torch.equal(direct.goal, through_env.goal)
+    blocks = packed.reset([7, 5, 9])
+    assert all(torch.equal(a[8:16], b) for a, b in zip(blocks, lone)) and torch.equal(packed.goal[8:16], direct.goal)
+    with pytest.raises(ValueError, match="equal blocks"):
+        packed.reset([1, 2, 3, 4, 5])
+
+
+@pytest.mark.parametrize("domain", [NAME, REF])
+def test_an_agent_declared_static_sees_the_same_all_episode(domain):
+    """AgentRole.static (a packed trainer runs such an agent's network once an episode): its observations over an
+    episode are equal step for step; a moving agent's are not."""
+    spec = smoke(domain, **{f"{domain}_episode_len": 8})
+    team = game.new_agents(spec, 0)
+    for index, agent in enumerate(game.roles(spec)):
+        seen = game.play(spec, list(team.actors), 16, 3, torch.Generator().manual_seed(0), record=index).role_obs
+        assert all(torch.equal(o, seen[0]) for o in seen) == agent.static, agent.name
 
 
 def test_the_return_reaches_the_speaker_through_the_world():

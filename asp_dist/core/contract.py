@@ -113,6 +113,9 @@ class Domain(ABC):
     # Spec fields besides the base's, paired count and |U| that shape U (what unpaired() returns), so
     # that a cache of U keys on them: e.g. the VAE's adversary input (μ or sampled z).
     unpaired_fields: tuple[str, ...] = ()
+    # Spec fields besides the base's and the paired count that shape P (what paired() returns), likewise: e.g.
+    # the VMAS domains' new agent (P holds that agent's observations and choices).
+    paired_fields: tuple[str, ...] = ()
     # True for the one domain a spec that names no domain belongs to (CellSpec's default `domain`): the built-in
     # signaling game, for specs and spaces written before the domain had to be named. A plugin leaves it False.
     default_for_specs: bool = False

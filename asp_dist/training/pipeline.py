@@ -1,8 +1,8 @@
 """The one cell pipeline: a cell is a unit of one, a pack a unit of K cells, whatever trains them.
 
     bases    each member's base from `bases` (the sweep's cache) or trained here, once per key
-    data     P and U per (base, data seed, paired count), sampled once in that order and shared by the
-             methods; fresh agents per member
+    data     P and U per (base, data seed, paired count, the domain's paired_fields and unpaired_fields), sampled
+             once in that order and shared by the methods; fresh agents per member
     train    one trainer (asp_dist.training.engines: a domain's packed trainer for a pack, the cell's
              lone trainer for a cell) of the members whose base was accepted, checkpointed and restored
              as a whole in one format (CHECKPOINT_VERSION)
@@ -202,7 +202,7 @@ def run_unit(trainer_class: type, specs: Sequence[CellSpec], *, bases: dict[str,
         spec, base = specs[i], bases[specs[i].base_key]
         weights = method_weights(spec)
         with timers[i].phase("data"):
-            key = (spec.base_key, spec.seed_for("data"), spec.paired)
+            key = (spec.base_key, spec.seed_for("data"), spec.paired, *(getattr(spec, f) for f in domain.paired_fields))
             if key not in data_cache:
                 gen = torch.Generator().manual_seed(spec.seed_for("data"))
                 p = domain.paired(spec, base.agents, spec.paired, gen) if spec.paired > 0 else {}

@@ -98,6 +98,9 @@ class VMASDomain(GameDomain):
                  "such check."),
         ]
         cls.knobs = tuple(knobs)
+        # P holds the new agent's observations and choices; U its channel's choices
+        cls.paired_fields = (f"{p}_new_agent",)
+        cls.unpaired_fields = tuple(k.name for k in knobs if k.name in (f"{p}_new_agent", f"{p}_channel"))
         cls.accept_field = f"{p}_accept_mi"
         cls.defaults = dict(
             lambda_paired=1.0, lambda_unpaired=0.1, unpaired_size=1024,
@@ -121,7 +124,8 @@ class VMASDomain(GameDomain):
 
     @property
     def trainers(self) -> tuple[type, ...]:
-        return ()  # the reference trainer
+        """Its packed trainer (trainers.py), for `--pack` sweeps; a lone cell trains on the reference."""
+        return importlib.import_module("asp_dist.domains.vmas.trainers").TRAINERS_OF[self.name]
 
     def channel_part(self, spec: CellSpec) -> tuple[str, int]:
         """The new agent's channel part and its size."""

@@ -11,12 +11,14 @@ N_MOVES, LANDMARKS = 5, 3  # mpe2's moves: stay, −x, +x, −y, +y
 @dataclass(frozen=True)
 class AgentRole:
     """One agent of a scenario: whether it moves (mpe2's 5 moves), how many words it says (0: silent), the width
-    of its observation."""
+    of its observation, and whether that observation stays the same for a whole episode (a packed trainer then
+    runs its network once an episode, not once a step)."""
 
     name: str
     moves: bool
     words: int
     obs: int
+    static: bool = False
 
     @property
     def parts(self) -> tuple[tuple[str, int], ...]:
@@ -33,7 +35,7 @@ class Scenario:
 
 SCENARIOS = {
     "speaker_listener": Scenario(
-        agents=(AgentRole("speaker_0", moves=False, words=3, obs=3),
+        agents=(AgentRole("speaker_0", moves=False, words=3, obs=3, static=True),  # sees its goal's colour only
                 AgentRole("listener_0", moves=True, words=0, obs=2 + 2 * LANDMARKS + 3)),
         colours=((0.65, 0.15, 0.15), (0.15, 0.65, 0.15), (0.15, 0.15, 0.65)), rewards=("dist2", "dist")),
     "reference": Scenario(

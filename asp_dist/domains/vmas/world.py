@@ -30,6 +30,7 @@ seed reproduces every world.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -71,6 +72,7 @@ def scenario_class():
                 world.add_landmark(Landmark(name=f"landmark {i}", collide=False, shape=Sphere(0.04)))
             self.colours = torch.tensor(self.spec.colours)
             self.goal = torch.zeros(batch_dim, self.seers, dtype=torch.long)
+            self.seeds = [0]  # one seed per block of worlds (Worlds.reset)
             return world
 
         @property
@@ -79,17 +81,24 @@ def scenario_class():
             return sum(a.words > 0 for a in self.spec.agents)
 
         def reset_world_at(self, env_index: int | None = None):
-            n = self.world.batch_dim if env_index is None else 1
+            """Every world afresh: the batch is len(self.seeds) equal blocks, block b drawn from self.rng seeded
+            with self.seeds[b], in the order a lone batch of that block's size draws them (the goals, then each
+            agent's and landmark's position), so a block's worlds are those of a lone batch reset from its seed."""
+            if env_index is not None:
+                raise NotImplementedError("the worlds reset all together, from seeds (Worlds.reset)")
+            n = self.world.batch_dim // len(self.seeds)
             draw = n if self.options.goal_per_world else 1
-            goal = torch.randint(0, LANDMARKS, (draw, self.seers), generator=self.rng).expand(n, self.seers)
-            if env_index is None:
-                self.goal = goal.clone()
-            else:
-                self.goal[env_index] = goal[0]
-            for entity in self.world.agents + self.world.landmarks:
-                entity.set_pos(torch.rand(n, 2, generator=self.rng) * 2 - 1, batch_index=env_index)
+            goals, positions = [], []
+            for seed in self.seeds:
+                self.rng.manual_seed(seed)
+                goals.append(torch.randint(0, LANDMARKS, (draw, self.seers), generator=self.rng).expand(n, self.seers))
+                positions.append([torch.rand(n, 2, generator=self.rng) * 2 - 1
+                                  for _ in self.world.agents + self.world.landmarks])
+            self.goal = torch.cat(goals)
+            for k, entity in enumerate(self.world.agents + self.world.landmarks):
+                entity.set_pos(torch.cat([block[k] for block in positions]), batch_index=None)
                 if entity.movable:
-                    entity.set_vel(torch.zeros(n, 2), batch_index=env_index)
+                    entity.set_vel(torch.zeros(self.world.batch_dim, 2), batch_index=None)
 
         def goal_position(self, seer: int) -> torch.Tensor:
             landmarks = torch.stack([lm.state.pos for lm in self.world.landmarks], 1)
@@ -118,9 +127,11 @@ def scenario_class():
 
 
 class Worlds:
-    """n worlds of one scenario stepped as one batch; every episode starts all of them from a seed. `step` takes
-    each agent's choices as one-hots (straight-through tensors keep their gradient: the world is differentiable)
-    and returns the team reward per world."""
+    """n worlds of one scenario stepped as one batch; every episode starts all of them from a seed, or, for a
+    packed trainer, each of `blocks` equal blocks of them from its own seed (a block is then, world for world,
+    a lone batch of n / blocks worlds reset from that seed). `step` takes each agent's choices as one-hots
+    (straight-through tensors keep their gradient: the world is differentiable) and returns the team reward
+    per world."""
 
     def __init__(self, n: int, options: WorldOptions):
         import vmas
@@ -133,8 +144,24 @@ class Worlds:
         self.obs: list[torch.Tensor] = []
         self.t = 0
 
-    def reset(self, seed: int) -> list[torch.Tensor]:
-        self.rng.manual_seed(seed)
+    def reset(self, seed: int | Sequence[int]) -> list[torch.Tensor]:
+        """Every world from `seed`, or block b of the batch from seed[b]; the agents' observations.
+
+        Resets VMAS's World directly, as its Environment.reset does (`reference_reset`, tested equal), without
+        the Environment's swap of the global RNG states."""
+        seeds = [seed] if isinstance(seed, int) else list(seed)
+        if not seeds or self.n % len(seeds):
+            raise ValueError(f"{self.n} worlds do not split into {len(seeds)} equal blocks")
+        scenario = self.env.scenario
+        scenario.seeds = seeds
+        scenario.env_reset_world_at(None)
+        self.obs = [scenario.observation(agent) for agent in self.env.world.agents]
+        self.t = 0
+        return self.obs
+
+    def reference_reset(self, seed: int) -> list[torch.Tensor]:
+        """The same reset through VMAS's Environment.reset."""
+        self.env.scenario.seeds = [seed]
         self.obs = self.env.reset()
         self.t = 0
         return self.obs
