@@ -55,7 +55,15 @@ from asp_dist.results.query import run_query
 from asp_dist.spec import CellSpec
 from asp_dist.sweep import ledger
 from asp_dist.sweep.base_cache import get_base, rejected_path
-from asp_dist.sweep.packing import DEFAULT_PACK_SIZE, Packing, Unit, make_units, resolve_packing, spread_bases
+from asp_dist.sweep.packing import (
+    DEFAULT_PACK_SIZE,
+    Packing,
+    Unit,
+    bases_first,
+    make_units,
+    resolve_packing,
+    spread_bases,
+)
 from asp_dist.sweep.spaces import expand
 from asp_dist.training.engines import pack_key, run_pack, supports
 from asp_dist.training.row import comparable
@@ -166,6 +174,38 @@ def test_units_are_spread_over_bases_so_concurrent_workers_do_not_wait_on_one_ba
             left[a] -= 1
             assert a != b or sum(n > 0 for k, n in left.items() if k != a) == 0
     assert spread_bases(units) == spread_bases(list(units))  # a function of the units alone
+
+
+def test_a_packed_sweeps_missing_bases_come_first_as_units_of_their_own(tmp_path):
+    """bases_first: one base-only unit per base the units need that the cache has not settled, in the order the
+    units first need them, before every unit; such a unit runs no cell and is named by its base."""
+    specs = [s for s in expand(write_space(tmp_path)) if s.domain == "particles"]
+    units = spread_bases(make_units(specs, Packing("method", 21)))  # each pack spans both trials' bases
+    keys = list(dict.fromkeys(s.base_key for u in units for s in u.specs))
+    assert len(keys) == 2
+    ordered = bases_first(units, lambda key: False)
+    assert [u.base_only for u in ordered] == [True, True] + [False] * len(units) and ordered[2:] == units
+    assert [u.specs[0].base_key for u in ordered[:2]] == keys
+    assert all(u.cell_ids == [] and u.name == f"base_{u.specs[0].base_key}" for u in ordered[:2])
+    assert bases_first(units, lambda key: key == keys[0])[:1] == ordered[1:2]  # a settled base is not trained again
+    assert bases_first(units, lambda key: True) == units
+
+
+def test_a_base_only_unit_stores_its_base_and_records_no_cell(trainable, tmp_path):
+    sweep_tune, fake = trainable
+    spec = next(s for s in expand(write_space(tmp_path, signaling=False)) if s.trial == 0)
+    sweep_dir = tmp_path / "exp"
+    unit = Unit((spec,), base_only=True)
+    sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 30.0)})
+    assert store.base_path(store.bases_dir(sweep_dir), spec.base_key).exists()
+    assert fake.reports[-1] == {"cell_done": 0, "base_done": 1, "skipped": 0}
+    sweep_tune.train_cell({"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 30.0)})  # stored meanwhile
+    assert fake.reports[-1] == {"cell_done": 0, "base_done": 1, "skipped": 1}
+    other = next(s for s in expand(write_space(tmp_path, signaling=False)) if s.trial == 1)
+    rejected_path(store.bases_dir(sweep_dir), other.base_key).write_text('{"error": "planted by the test"}')
+    sweep_tune.train_cell({"cell": sweep_tune.unit_config(Unit((other,), base_only=True), sweep_dir, "exp", 30.0)})
+    assert fake.reports[-1] == {"cell_done": 0, "base_done": 0}
+    assert not cell_files(sweep_dir) and not store.failed_cells(sweep_dir)  # its cells fail when they run
 
 
 def test_a_packed_trainer_kept_out_of_sweeps_leaves_its_cells_single(monkeypatch):
@@ -434,7 +474,7 @@ def test_every_registered_packed_trainer_runs_a_pack_and_restores_it_in_the_trai
     config = {"cell": sweep_tune.unit_config(unit, sweep_dir, "exp", 1e-9)}  # a checkpoint after every update
 
     sweep_tune.train_cell(config)
-    steps = TINY[domain]["train_steps"]
+    steps = specs[0].train_steps
     assert len(fake.saved) == steps - 1 and fake.reports[-1]["cells_written"] == 3
     expected = direct_rows([unit], store.bases_dir(sweep_dir))
     assert_rows(store.read_rows(sweep_dir), expected)
@@ -561,6 +601,8 @@ def test_packed_and_single_cell_sweeps_of_a_mixed_space(tmp_path, ray_temp):
     assert packed.returncode == 0, packed.stderr[-3000:]
     assert "8/8 cells done, 0 failed" in packed.stdout
     assert "packed (--pack trial --pack-size 21: 2 pack(s) of 3 cells + 2 single cell(s))" in packed.stderr
+    assert "3 base(s) missing: trained first" in packed.stderr  # two particle trials' and the signaling one's
+    assert len(list((results / "packed" / "tune" / "run-1").glob("base_*"))) == 3
 
     files = store.cell_files(results / "packed", strict=True)  # one file per cell, the pinned schema
     assert sorted(p.stem for p in files) == sorted(s.cell_id for s in specs)

@@ -80,6 +80,16 @@ def bases_dir(sweep_dir: str | AnyPath) -> AnyPath:
     return as_path(sweep_dir) / BASES_DIR
 
 
+def base_path(cache_dir: str | AnyPath, base_key: str) -> AnyPath:
+    """Where a base cache (bases_dir; asp_dist.sweep.base_cache) keeps the base `base_key`."""
+    return as_path(cache_dir) / f"{base_key}.pt"
+
+
+def rejected_base_path(cache_dir: str | AnyPath, base_key: str) -> AnyPath:
+    """Where it remembers that no attempt could train that base to its bar."""
+    return as_path(cache_dir) / f"{base_key}.rejected.json"
+
+
 def cell_path(sweep_dir: str | AnyPath, domain: str, method: str, cell_id: str) -> AnyPath:
     return cells_dir(sweep_dir) / f"domain={domain}" / f"method={method}" / f"{cell_id}.parquet"
 

@@ -46,16 +46,7 @@ from asp_dist.training.bases import BaseModel, BaseRejected, base_from_bytes, ba
 POLL_S = 1.0  # on S3: how often a cell waiting for a base being trained elsewhere looks for it
 
 
-def _dir(cache_dir: AnyPath) -> AnyPath:
-    return cache_dir if isinstance(cache_dir, S3Path) else Path(cache_dir)
-
-
-def base_path(cache_dir: AnyPath, base_key: str) -> AnyPath:
-    return _dir(cache_dir) / f"{base_key}.pt"
-
-
-def rejected_path(cache_dir: AnyPath, base_key: str) -> AnyPath:
-    return _dir(cache_dir) / f"{base_key}.rejected.json"
+base_path, rejected_path = store.base_path, store.rejected_base_path  # the file names, torch-free for the driver
 
 
 def _raise_if_rejected(cache_dir: AnyPath, base_key: str) -> None:

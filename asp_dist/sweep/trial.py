@@ -65,7 +65,7 @@ def unit_config(unit: Unit, sweep_dir: AnyPath, sweep_id: str, checkpoint_every_
     single cell), members' specs and cell ids, and where the sweep writes."""
     return {"name": unit.name, "pack_id": unit.pack_id, "specs": [s.to_dict() for s in unit.specs],
             "cell_ids": unit.cell_ids, "sweep_dir": str(sweep_dir), "sweep_id": sweep_id,
-            "checkpoint_every_s": checkpoint_every_s}
+            "checkpoint_every_s": checkpoint_every_s, "base_only": unit.base_only}
 
 
 def unit_from_config(config: dict[str, Any]) -> dict[str, Any]:
@@ -96,11 +96,31 @@ def train_cell(config: dict[str, Any]) -> None:
     torch.set_num_threads(1)
     unit = unit_from_config(config["cell"])
     try:
-        train_unit(unit)
+        if unit.get("base_only"):
+            train_base(unit)
+        else:
+            train_unit(unit)
     except OSError as e:
         if not is_disk_full(e):
             raise
         tune.report({"cell_done": 0, DISK_FULL: getattr(e, "filename", None) or unit["sweep_dir"]})
+
+
+def train_base(unit: dict[str, Any]) -> None:
+    """A base-only unit (asp_dist.sweep.packing.bases_first): its spec's base trained into the sweep's cache, or
+    loaded if another worker stored it meanwhile. A base that meets no bar is remembered there as rejected
+    (base_cache), and its cells fail at once with that message when their units run: nothing is recorded here."""
+    from asp_dist.sweep.base_cache import get_base
+
+    spec = CellSpec.from_dict(unit["specs"][0]).resolved()
+    try:
+        _, cached = get_base(spec, store.bases_dir(as_path(unit["sweep_dir"])))
+    except StorageError:
+        raise
+    except deterministic_failures():
+        tune.report({"cell_done": 0, "base_done": 0})
+        return
+    tune.report({"cell_done": 0, "base_done": 1, "skipped": int(cached)})
 
 
 def train_unit(unit: dict[str, Any], report: Callable[..., None] | None = None,
