@@ -14,6 +14,9 @@ which cells are already done: a resumed sweep rebuilds exactly the same packs, t
 that has some rows again as a whole, and writes only the members without a row. The packing is
 stored in the sweep's manifest when the sweep starts and cannot change afterwards.
 
+A packed sweep hands its workers the bases missing from its cache first, as units of their own (bases_first),
+then the packs, spread over their bases (schedule).
+
 Cells that cannot be packed (a domain without a packed trainer, knob values its packed trainer
 does not implement, a packed trainer kept out of sweeps because it is slower than the single-cell
 path: the VAE's, asp_dist.training.engines.sweep_packs) and groups of a single cell run one cell per
@@ -29,6 +32,8 @@ from typing import Any, Callable, Sequence
 
 from asp_dist.errors import SweepError
 from asp_dist.hashing import stable_hash
+from asp_dist.results import store
+from asp_dist.results.location import AnyPath
 from asp_dist.spec import CellSpec
 
 PACK_MODES = ("cell", "trial", "method")
@@ -210,6 +215,17 @@ def bases_first(units: Sequence[Unit], settled: Callable[[str], bool]) -> list[U
             if spec.base_key not in missing and not settled(spec.base_key):
                 missing[spec.base_key] = spec
     return [Unit((spec,), base_only=True) for spec in missing.values()] + list(units)
+
+
+def schedule(units: Sequence[Unit], packing: Packing, sweep_dir: AnyPath) -> list[Unit]:
+    """The order a sweep hands `units` (those with a cell still to write) to its workers: spread over their bases
+    (spread_bases), and in a packed sweep after the bases missing from the sweep's cache (bases_first)."""
+    units = spread_bases(units)
+    if not packing.packed:
+        return units
+    bases = store.bases_dir(sweep_dir)
+    return bases_first(units, lambda key: store.base_path(bases, key).exists()
+                       or store.rejected_base_path(bases, key).exists())
 
 
 def describe_units(units: Sequence[Unit]) -> str:

@@ -64,7 +64,7 @@ from asp_dist.results.location import AnyPath, as_path, write_replace
 from asp_dist.results.s3 import S3Path
 from asp_dist.sweep import ledger, preflight, provenance, signals, worker_start
 from asp_dist.sweep.ledger import SweepResult
-from asp_dist.sweep.packing import Unit, bases_first, describe_units, make_units, resolve_packing, spread_bases
+from asp_dist.sweep.packing import Unit, describe_units, make_units, resolve_packing, schedule
 from asp_dist.sweep.plan import Plan, RunOptions
 from asp_dist.sweep.progress import SweepCounter
 from asp_dist.sweep.ray_host import _start_reaper, loopback_only, ray_session  # noqa: F401
@@ -469,20 +469,15 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                 done, _ = ledger.finished_and_failed(sweep_dir, grid, remember=True)  # status reads no footer again
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
-                pending = spread_bases([u for u in units if not set(u.cell_ids) <= done])
-                if packing.packed:  # a pack's bases are trained first, spread over the workers
-                    bases = store.bases_dir(sweep_dir)
-                    pending = bases_first(pending, lambda key: store.base_path(bases, key).exists()
-                                          or store.rejected_base_path(bases, key).exists())
+                pending = schedule([u for u in units if not set(u.cell_ids) <= done], packing, sweep_dir)
                 counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
                 where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
                 how = f", packed ({packing.describe()}: {describe_units(units)})" if packing.packed else ""
                 stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done){how}, "
                              f"{where}, results in {sweep_dir}\n")
-                missing = sum(u.base_only for u in pending)
-                if missing:
-                    stream.write(f"sweep {name}: {missing} base(s) missing: trained first, one per free worker, "
-                                 f"then the packs\n")
+                if any(u.base_only for u in pending):
+                    stream.write(f"sweep {name}: {sum(u.base_only for u in pending)} base(s) missing: trained "
+                                 f"first, one per free worker, then the packs\n")
                 if pending:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)
                     _DISK_FULL.clear()
