@@ -14,7 +14,10 @@ Needs the `pettingzoo` and `vmas` extras. Rows:
                    update (8 copies × 5 steps, autograd) and one VMAS episode through the differentiable world
                    (64 worlds × 25 steps, forward and backward)
   cells (--cells)  one PC, OSP and ASP cell of each domain at its defaults, on a base trained once (its CPU
-                   seconds apart): CPU seconds per cell and world-steps per cell
+                   seconds apart): CPU seconds per cell and world-steps per cell; then the VMAS trial's 30 cells
+                   (2 roles × 3 methods × paired 0-8) in the two packs of `sweep vmas-words --pack trial`: CPU
+                   seconds per packed cell (data, its share of the pack's training, evaluation; no curves, as the
+                   lone cells)
 
 Figures are CPU seconds of this process, so load from other processes inflates them less than wall time, but
 a busy machine still slows caches and turbo: the load average is printed and stored with them.
@@ -124,9 +127,12 @@ def learner_steps() -> dict[str, float]:
 
 
 def cells(trial: int) -> list[dict]:
-    """One PC, OSP and ASP cell (paired 2) of each domain at its defaults, on one base per domain."""
+    """One PC, OSP and ASP cell (paired 2) of each domain at its defaults, on one base per domain; then the VMAS
+    trial's cells in the packs `asp-dist sweep vmas-words --pack trial` makes (per role: PC, OSP, ASP × paired 0, 1,
+    2, 4, 8), on the same base."""
     from asp_dist.training.cell import run_cell
     from asp_dist.training.bases import train_accepted_base
+    from asp_dist.training.engines import run_pack
 
     out = []
     for name in (MPE, VMAS):
@@ -149,6 +155,20 @@ def cells(trial: int) -> list[dict]:
             print(f"  {name:24s} {method:4s} cell {cpu:7.1f} CPU-s  (base {base_cpu:6.1f} CPU-s, "
                   f"{world_steps if method != 'pc' else 0:,} self-play world-steps, mixed {row['eval_mixed']:.2f})",
                   flush=True)
+    for role in ("listener_0", "speaker_0"):  # the packs of one trial of the word study, as a sweep makes them
+        pack = [spec.replace(method=m, paired=k, vmas_speaker_listener_new_agent=role).resolved()
+                for m in ("pc", "osp", "asp") for k in (0, 1, 2, 4, 8)]
+        start = time.process_time()
+        results = run_pack(pack, bases={spec.base_key: base})  # data, training and evaluation of every member
+        cpu = time.process_time() - start
+        assert all(r.error is None for r in results), [r.error for r in results if r.error]
+        out.append({"domain": VMAS, "method": f"pack of {len(pack)}, new {role}", "cpu_s": cpu / len(pack),
+                    "pack_cpu_s": cpu, "base_cpu_s": base_cpu, "members": len(pack),
+                    "train_cpu_s_per_member": results[0].row["time_train_cpu_s"],
+                    "mixed_by_method": {m: float(np.median([r.row["eval_mixed"] for r in results if r.spec.method == m]))
+                                        for m in ("pc", "osp", "asp")}})
+        print(f"  {VMAS:24s} trial pack, new {role}: {cpu:7.1f} CPU-s for {len(pack)} cells, "
+              f"{cpu / len(pack):5.2f} CPU-s a cell", flush=True)
     return out
 
 
@@ -220,6 +240,14 @@ def main() -> int:
           f"{lr['vmas_episode_steps_per_cpu_s']:,.0f}")
     if args.cells:
         result["cells"] = cells(args.trial)
+        by = {(r["domain"], r["method"]): r["cpu_s"] for r in result["cells"]}
+        packed = [r["cpu_s"] for r in result["cells"] if r["method"].startswith("pack")]
+        per_cell = sum(packed) / len(packed)
+        result["packed_cell_ratios"] = {"vs_mpe2_osp": by[(MPE, "osp")] / per_cell,
+                                        "vs_vmas_lone_osp": by[(VMAS, "osp")] / per_cell}
+        print(f"  a VMAS cell in a trial pack: {per_cell:.2f} CPU-s; the mpe2 OSP cell "
+              f"{result['packed_cell_ratios']['vs_mpe2_osp']:.1f} × that, the lone VMAS OSP cell "
+              f"{result['packed_cell_ratios']['vs_vmas_lone_osp']:.1f} ×")
     result["load_after"] = os.getloadavg()[0]
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))

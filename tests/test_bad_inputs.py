@@ -255,6 +255,8 @@ case("sweep-ckpt-huge", [*S, "--checkpoint-every", "1e300"], "--checkpoint-every
 case("sweep-connect-huge", [*S, "--connect-timeout", "1e300"], "--connect-timeout must be <= 86400 seconds")
 case("sweep-connect-0", [*S, "--connect-timeout", "0"], "--connect-timeout must be > 0 seconds")
 case("sweep-pack-size-0", [*S, "--pack", "trial", "--pack-size", "0"], "--pack-size must be >= 1, got 0")
+case("sweep-pack-nothing-packs", [*S, "--pack", "trial"],  # smoke: the signaling game alone
+     "--pack trial: none of the 18 cells of smoke can be packed (signaling has no packed trainer)")
 for flag in ("--logger-dir", "--mlflow-uri", "--wandb-project", "--logger", "--ray-temp-dir"):
     case(f"sweep-empty{flag}", [*S, flag, ""], f"{flag} is empty")  # was: the default, silently
 case("sweep-empty-results", ["sweep", "smoke", "--results", ""], "--results is empty")  # was: the current directory

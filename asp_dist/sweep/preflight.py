@@ -233,11 +233,32 @@ def check_can_start(results: str | AnyPath, name: str, specs: list[CellSpec], sp
     manifest = store.read_manifest(sweep_dir)  # None also where sweep_dir is a file: refused next
     check_sweep_dir_readonly(sweep_dir, manifest)
     resolve_packing(pack, pack_size, manifest)
+    if pack in ("trial", "method"):
+        check_something_packs(specs, space, pack)
     if manifest is not None:
         check_manifest_shape(manifest, sweep_dir)
         check_manifest(sweep_dir, name, specs, space, extend=extend, manifest=manifest)
         check_not_running(sweep_dir)
     return manifest
+
+
+def check_something_packs(specs: list[CellSpec], space: str, pack: str) -> None:
+    """--pack asked for a grid none of whose cells a packed trainer takes (the flag would change nothing): refused.
+    A grid where some cells pack runs the others one cell per trial, as documented."""
+    from asp_dist.core.registry import get_domain
+    from asp_dist.training.engines import sweep_packs
+
+    if not specs or any(sweep_packs(s) for s in specs):
+        return
+    reasons = []
+    for domain in sorted({s.domain for s in specs}):
+        packers = [t for t in get_domain(domain).trainers if getattr(t, "packs", False)]
+        reasons.append(f"{domain} has no packed trainer" if not packers
+                       else f"{domain}'s packed trainer is kept out of sweeps" if not any(t.in_sweeps for t in packers)
+                       else f"{domain}'s packed trainer does not take these cells' knob values")
+    why = "; ".join(reasons)
+    raise SweepError(f"--pack {pack}: none of the {len(specs)} cells of {space} can be packed ({why}); "
+                     f"leave out --pack to run one cell per trial")
 
 
 def check_can_resume(results: str | AnyPath, name: str, pack: str | None = None,
