@@ -50,3 +50,19 @@ def test_a_terminal_gets_the_live_view():
     p.update(done={"p0"})
     p.finish()
     assert "1/60 done" in out.getvalue() and "[s] done" not in out.getvalue()
+
+
+def test_bases_trained_first_are_counted_until_the_last_one():
+    """A packed sweep's bases come first (packing.bases_first): while they train no cell moves, so the view
+    counts them, in the log and on a terminal, until the last is trained."""
+    out = io.StringIO()
+    p = SweepCounter("words", CELLS, stream=out, log_interval_s=0.0, bases=2)
+    p.draw(force=True)
+    p.base_finished()
+    p.base_finished()
+    p.update(done={"p0"})
+    lines = out.getvalue().splitlines()
+    assert [line.split("]")[1].split("done")[0].strip() for line in lines] == ["bases 0/2", "bases 1/2", "", ""]
+    console = Console(width=WIDTH, record=True, force_terminal=True, file=io.StringIO())
+    console.print(SweepCounter("words", CELLS, bases=3).render())
+    assert "words: bases 0/3, 0/60 done" in console.export_text()

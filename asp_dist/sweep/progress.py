@@ -36,11 +36,14 @@ class SweepCounter:
     cells      cell id -> its group, "domain/method" (the rows of the view)
     done       ids of the cells that already had a row when this run started
     where      where the rows go (shown under the counts)
+    bases      bases this run trains before its packs (asp_dist.sweep.packing.bases_first); `base_finished`
+               counts them, and the view says "bases k/n" until they are all trained
     """
 
     def __init__(self, name: str, cells: dict[str, str], done: set[str] | frozenset[str] = frozenset(),
-                 stream: TextIO | None = None, where: str = "", log_interval_s: float = 5.0):
+                 stream: TextIO | None = None, where: str = "", log_interval_s: float = 5.0, bases: int = 0):
         self.name, self.cells, self.where = name, dict(cells), where
+        self.bases, self.bases_done = bases, 0
         self.done: set[str] = set(done) & set(cells)
         self.failed: set[str] = set()
         self.running: set[str] = set()
@@ -50,7 +53,7 @@ class SweepCounter:
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self.start = time.monotonic()
         self.log_interval_s = log_interval_s
-        self._logged: tuple[int, int] | None = None  # (done, failed) of the last log line
+        self._logged: tuple[int, int, int] | None = None  # (done, failed, bases done) of the last log line
         self._last_log = float("-inf")
         self._live = None
 
@@ -87,9 +90,17 @@ class SweepCounter:
             out.append((group, d, r, f, max(0, total[group] - d - r - f)))
         return out
 
+    def bases_part(self) -> str:
+        """"bases k/n  " while this run's bases are being trained first, else empty."""
+        return f"bases {self.bases_done}/{self.bases}  " if self.bases_done < self.bases else ""
+
+    def base_finished(self) -> None:
+        self.bases_done += 1
+        self.draw()
+
     def line(self) -> str:
         rate = self.rate_per_min()
-        return (f"[{self.name}] done {len(self.done)}/{self.total}  running {len(self.running)}  "
+        return (f"[{self.name}] {self.bases_part()}done {len(self.done)}/{self.total}  running {len(self.running)}  "
                 f"failed {len(self.failed)}  pending {self.pending}  elapsed "
                 f"{format_duration(time.monotonic() - self.start)}  "
                 f"{'?' if rate is None else f'{rate:.1f}'} cells/min  ETA {format_duration(self.eta_s())}")
@@ -112,7 +123,7 @@ class SweepCounter:
             self._draw_live()
             return
         now = time.monotonic()
-        counts = (len(self.done), len(self.failed))
+        counts = (len(self.done), len(self.failed), self.bases_done)
         if force or (counts != self._logged and now - self._last_log >= self.log_interval_s):
             self.stream.write(self.line() + "\n")
             self.stream.flush()
@@ -135,7 +146,8 @@ class SweepCounter:
         from rich.text import Text
 
         rate = self.rate_per_min()
-        head = Text(f"{self.name}: {len(self.done)}/{self.total} done, {len(self.running)} running, "
+        bases = f"{self.bases_part().rstrip()}, " if self.bases_part() else ""
+        head = Text(f"{self.name}: {bases}{len(self.done)}/{self.total} done, {len(self.running)} running, "
                     f"{len(self.failed)} failed, {self.pending} pending", style="bold")
         pace = Text(f"{'?' if rate is None else f'{rate:.1f}'} cells/min · elapsed "
                     f"{format_duration(time.monotonic() - self.start)} · ETA {format_duration(self.eta_s())}")

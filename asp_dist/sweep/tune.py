@@ -133,6 +133,8 @@ class SweepCallback(tune.Callback):
         self._refresh(trials)
 
     def on_trial_complete(self, iteration, trials, trial, **info):
+        if unit_from_config(trial.config["cell"]).get("base_only"):
+            self._counter().base_finished()
         self._refresh(trials)
 
     def on_trial_error(self, iteration, trials, trial, **info):
@@ -140,6 +142,8 @@ class SweepCallback(tune.Callback):
         if trial.error_file and os.path.exists(trial.error_file):
             error = Path(trial.error_file).read_text()
         config = unit_from_config(trial.config["cell"])
+        if config.get("base_only"):  # its cells fail on the base when their units run
+            self._counter().base_finished()
         where = f" (in pack {config['pack_id']})" if config["pack_id"] is not None else ""
         sweep_dir = as_path(self.sweep_dir)
         for cell_id, domain, method in config_cells(config):
@@ -470,14 +474,14 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
                 pending = schedule([u for u in units if not set(u.cell_ids) <= done], packing, sweep_dir)
-                counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)))
+                counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)),
+                                       bases=bases)
                 where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
-                how = f", packed ({packing.describe()}: {describe_units(units)})" if packing.packed else ""
+                bases = sum(u.base_only for u in pending)  # trained first, one per free worker, then the packs
+                how = (f", packed ({packing.describe()}: {describe_units(units)}"
+                       f"{f'; {bases} base(s) missing: trained first' if bases else ''})") if packing.packed else ""
                 stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done){how}, "
                              f"{where}, results in {sweep_dir}\n")
-                if any(u.base_only for u in pending):
-                    stream.write(f"sweep {name}: {sum(u.base_only for u in pending)} base(s) missing: trained "
-                                 f"first, one per free worker, then the packs\n")
                 if pending:
                     callback = SweepCallback(str(sweep_dir), name, grid, counter)
                     _DISK_FULL.clear()

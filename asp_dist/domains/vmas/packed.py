@@ -75,7 +75,9 @@ class PackedVMASTrainer(PackedTrainer):
     specs, paired, unpaired, agents: one entry per member, as Trainer gets them; the agents' (Team) parameters
     are re-pointed into the pack's buffer, so after training member i's `members[i].agents` holds its weights."""
 
-    lone = False  # a lone cell stays on the reference Trainer (docs/performance.md: no faster as a pack of one)
+    # A lone cell stays on the reference Trainer: a pack of one is ~23 % faster per update, but the committed word
+    # study's rows were trained on the reference, and `replay` retraces them there (docs/decisions/0061).
+    lone = False
 
     def __init_subclass__(cls, card: type[VMASDomain] | None = None, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
