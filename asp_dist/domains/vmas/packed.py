@@ -59,6 +59,7 @@ from asp_dist.training.methods import method_weights
 from asp_dist.training.stacked import PackedTrainer, StackedParams, column, retain_freed_memory
 
 CHUNK = 16  # updates whose random draws are made ahead
+_tanh_backward = torch.ops.aten.tanh_backward  # grad · (1 − y²)
 BASE_KNOBS = ("base_worlds", "base_lr", "accept_mi", "accept_drop")  # <domain>_<these> shape the base alone
 # Common fields every member shares: the loop's length and the tensors' shapes.
 COMMON_SHARED = ("domain", "train_steps", "batch_size", "disc_hidden", "disc_layers", "unpaired_batch", "disc_steps")
@@ -167,13 +168,15 @@ class PackedVMASTrainer(PackedTrainer):
                 for a in range(len(self.roles))]
 
     @staticmethod
-    def _actor(weights: tuple[torch.Tensor, ...], x: torch.Tensor) -> torch.Tensor:
+    def _actor(weights: tuple[torch.Tensor, ...], x: torch.Tensor, keep: list | None = None) -> torch.Tensor:
         """An agent's logits on x (members, rows, obs), for its layers' `weights` (_weights): nn.Linear, tanh,
-        twice, then nn.Linear, as game._mlp."""
+        twice, then nn.Linear, as game._mlp. keep: receives (x, h1, h2), detached (_ChannelProbs reads them)."""
         W1T, b1, W2T, b2, W3T, b3 = weights
-        h = _Tanh.apply(torch.baddbmm(b1, x, W1T))
-        h = _Tanh.apply(torch.baddbmm(b2, h, W2T))
-        return torch.baddbmm(b3, h, W3T)
+        h1 = _Tanh.apply(torch.baddbmm(b1, x, W1T))
+        h2 = _Tanh.apply(torch.baddbmm(b2, h1, W2T))
+        if keep is not None:
+            keep[:] = [x.detach(), h1.detach(), h2.detach()]
+        return torch.baddbmm(b3, h2, W3T)
 
     def _disc(self, x: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
         """The ASP members' discriminators' logits on x (Ma, rows, channel): adversary.Discriminator."""
@@ -215,7 +218,7 @@ class PackedVMASTrainer(PackedTrainer):
         obs = self.world.reset(self.seeds[j])
         exps = self.exps[j]
         total, entropy = torch.zeros(k, n), torch.zeros(k, n)
-        role_obs, role_idx = [], []
+        role_acts, role_probs, role_idx, acts = [], [], [], []  # the role's activations, channel probs and choices
         heads: list[list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None] = [None] * len(self.roles)
         weights = self._weights(self.sp)
         for t in range(T):
@@ -223,7 +226,7 @@ class PackedVMASTrainer(PackedTrainer):
             for a, agent in enumerate(self.roles):
                 x = obs[a].view(k, n, -1)
                 if heads[a] is None or not agent.static:  # a static agent's choices are the same every step
-                    heads[a] = self._heads(agent, weights[a], x)
+                    heads[a] = self._heads(agent, weights[a], x, acts if a == self.role and self.Ma else None)
                 choice = {}
                 for p, ((part, size), (logp, probs, h)) in enumerate(zip(agent.parts, heads[a])):
                     q = exps[:, t, offset:offset + n * size].view(k, n, size)
@@ -233,25 +236,29 @@ class PackedVMASTrainer(PackedTrainer):
                     entropy = entropy - h
                     if a == self.role and p == self.part:
                         role_idx.append(index)
-                if a == self.role:
-                    role_obs.append(x)
+                if a == self.role and self.Ma:
+                    role_acts.append(acts[:])
+                    role_probs.append(heads[a][self.part][1].detach())
                 choices.append(choice)
             total = total + self.world.step(choices).view(k, n)
             obs = self.world.obs
         loss = -(total.mean(1) + self.entropy * entropy.mean(1)) / T
         channel = None
-        if self.Ma:
-            seen = torch.stack(role_obs, 1)[self.adv_in_sp].detach().flatten(1, 2)  # (Ma, T·n, obs), step-major
-            chosen = torch.stack(role_idx, 1)[self.adv_in_sp].flatten(1, 2)
-            probs = self._part(self._actor(self._weights(self.adv)[self.role], seen)).softmax(-1)
-            channel = straight_through(chosen, probs)
+        if self.Ma:  # the ASP members' rows of every step, step-major: (Ma, T·n, ...)
+            def steps(items: list[torch.Tensor]) -> torch.Tensor:
+                return torch.stack(items, 1)[self.adv_in_sp].flatten(1, 2)
+
+            x, h1, h2 = (steps([kept[i] for kept in role_acts]) for i in range(3))
+            probs = _ChannelProbs.apply(steps(role_probs), x, h1, h2, self._part_start,
+                                        *self._weights(self.adv)[self.role])
+            channel = straight_through(steps(role_idx), probs)
         return loss, channel
 
-    def _heads(self, agent: AgentRole, weights: tuple[torch.Tensor, ...], x: torch.Tensor
+    def _heads(self, agent: AgentRole, weights: tuple[torch.Tensor, ...], x: torch.Tensor, keep: list | None = None
                ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """Per part of the agent's choices on x (self-play members, worlds, obs): log-probabilities,
         probabilities and entropy, as game.choose and game.play compute them."""
-        logits, start, out = self._actor(weights, x), 0, []
+        logits, start, out = self._actor(weights, x, keep), 0, []
         for _, size in agent.parts:
             logp = logits[..., start:start + size].log_softmax(-1)
             probs = logp.exp()
@@ -259,11 +266,10 @@ class PackedVMASTrainer(PackedTrainer):
             start += size
         return out
 
-    def _part(self, logits: torch.Tensor) -> torch.Tensor:
-        """The channel part's columns of the role's logits."""
-        sizes = [size for _, size in self.roles[self.role].parts]
-        start = sum(sizes[:self.part])
-        return logits[..., start:start + sizes[self.part]]
+    @property
+    def _part_start(self) -> int:
+        """Where the channel part's columns start in the role's logits."""
+        return sum(size for _, size in self.roles[self.role].parts[:self.part])
 
     def _paired_loss(self) -> torch.Tensor:
         """Every member's cross-entropy of each of the role's choices against the base's (M,), 0 without P."""
@@ -354,7 +360,34 @@ class _Tanh(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
         (y,) = ctx.saved_tensors
-        return torch.ops.aten.tanh_backward(grad, y)
+        return _tanh_backward(grad, y)
+
+
+class _ChannelProbs(torch.autograd.Function):
+    """The ASP members' channel probabilities on the role's observations *taken as given*, as game.self_play_step
+    makes them (it runs the role's actor again on the episode's observations, detached): forward, the episode's own
+    probabilities of the channel part; backward, the actor's layers run back by hand from the activations the
+    episode kept (x, h1, h2: (Ma, T·n, ·)), gradients for the actor's weights only, none for the observations.
+    The same gradient as the re-run's, without its forward pass (the channel is the part of the logits at
+    `start`)."""
+
+    @staticmethod
+    def forward(ctx, probs, x, h1, h2, start, W1T, b1, W2T, b2, W3T, b3):
+        ctx.save_for_backward(probs, x, h1, h2, W2T, W3T)
+        ctx.start, ctx.shapes = start, (W1T.shape, b1.shape, b3.shape)
+        return probs.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        probs, x, h1, h2, W2T, W3T = ctx.saved_tensors
+        cols = slice(ctx.start, ctx.start + probs.shape[-1])
+        g3 = probs * (grad - (grad * probs).sum(-1, keepdim=True))  # softmax's backward: the channel's logits
+        gW3T, gb3 = W3T.new_zeros(W3T.shape), W3T.new_zeros(ctx.shapes[2])
+        gW3T[..., cols], gb3[..., cols] = torch.bmm(h2.transpose(1, 2), g3), g3.sum(1, keepdim=True)
+        g2 = _tanh_backward(torch.bmm(g3, W3T[..., cols].transpose(1, 2)), h2)
+        g1 = _tanh_backward(torch.bmm(g2, W2T.transpose(1, 2)), h1)
+        return (None, None, None, None, None, torch.bmm(x.transpose(1, 2), g1), g1.sum(1, keepdim=True),
+                torch.bmm(h1.transpose(1, 2), g2), g2.sum(1, keepdim=True), gW3T, gb3)
 
 
 def _rows(rows: list[int]) -> slice | torch.Tensor:
