@@ -474,10 +474,10 @@ def _run(plan: Plan, options: RunOptions, stream: TextIO | None) -> SweepResult:
                 # Units from the whole grid (never from what is left): a resumed pack is the same pack.
                 units = make_units(specs, packing)
                 pending = schedule([u for u in units if not set(u.cell_ids) <= done], packing, sweep_dir)
+                bases = sum(u.base_only for u in pending)  # trained first, one per free worker, then the packs
                 counter = SweepCounter(name, grid, done, stream=stream, where=str(store.cells_dir(sweep_dir)),
                                        bases=bases)
                 where = f"cluster {address}" if address else f"embedded Ray, {workers} worker(s)"
-                bases = sum(u.base_only for u in pending)  # trained first, one per free worker, then the packs
                 how = (f", packed ({packing.describe()}: {describe_units(units)}"
                        f"{f'; {bases} base(s) missing: trained first' if bases else ''})") if packing.packed else ""
                 stream.write(f"sweep {name}: space {space}, {len(specs)} cells ({len(done)} already done){how}, "

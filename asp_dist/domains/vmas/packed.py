@@ -24,7 +24,10 @@ the calls once for the pack:
 The update is the reference's (asp_dist.training.trainer.Trainer driving game.self_play_step, paired_loss and
 training.adversary.Adversaries): w_sp·L_sp + λ0·L_p + λ1·L_u, the discriminators stepped disc_steps times on
 the episode's channel choices before L_u is taken through the updated ones. A PC member plays no episode: it
-has no worlds in the batch and only its paired loss is computed.
+has no worlds in the batch and only its paired loss is computed. Computed once where the reference computes
+the same values again: a static agent's network (its observation is fixed all episode: the speaker's) once an
+episode; the adversary's outputs from the episode's own probabilities, their gradient run back through the
+role's actor by hand from the activations the episode kept (_ChannelProbs), not by re-running the actor.
 
 Per member: loss weights, λ1 and its schedule, the adversarial loss kind, the entropy bonus, both learning
 rates, its P (padded to the pack's largest, padded rows weighted 0), its U, its generator. Shared (the pack
