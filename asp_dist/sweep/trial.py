@@ -12,6 +12,9 @@ What a worker does with a unit (asp_dist.sweep.packing.Unit, as ``unit_config`` 
 5. write each member without a row as a cell (curve, then its end to the trackers, then its row), and
    record each failed member once.
 
+A base-only unit (a packed sweep's bases, handed out first: asp_dist.sweep.packing.bases_first) only trains its
+base into the sweep's cache (train_base).
+
 A pack trains whole even when some members already have a row (so that every member's row is the one an
 uninterrupted run writes); only members without a row are written. A deterministic failure (a bad spec, a
 base that never meets its bar, missing or corrupt data, a member whose training diverged) is recorded under
