@@ -31,8 +31,8 @@ role's actor by hand from the activations the episode kept (_ChannelProbs), not 
 
 Per member: loss weights, λ1 and its schedule, the adversarial loss kind, the entropy bonus, both learning
 rates, its P (padded to the pack's largest, padded rows weighted 0), its U, its generator. Shared (the pack
-key, SHARED): the world's options, the team's shapes, the role and channel, the discriminator's shape, the
-loop's length.
+key: `shared`, from COMMON_SHARED and KNOB_SHARED): the world's options, the team's shapes, the role and
+channel, the discriminator's shape, the loop's length.
 
 Independence of pack-mates: no op mixes members or worlds (batched matmuls, per-world physics, reductions
 along a member's own rows), so a member's arithmetic is the same whatever its mates are as long as the pack's
