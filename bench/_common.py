@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import platform
 import resource
+import statistics
 import time
 from typing import Any, Callable
 
@@ -49,3 +50,18 @@ def machine_info() -> dict[str, Any]:
     if info["memory"] and info["memory"].endswith(" kB"):
         info["memory"] = f"{int(info['memory'].split()[0]) / 2**20:.1f} GiB"
     return info
+
+
+def cpu_per_call(call: Callable[[], Any], repeats: int = 3, min_s: float = 1.0) -> float:
+    """Median over `repeats` blocks of the CPU seconds of one call (each block at least min_s of CPU)."""
+    out = []
+    for _ in range(repeats):
+        n, start = 0, time.process_time()
+        while True:
+            call()
+            n += 1
+            spent = time.process_time() - start
+            if spent >= min_s:
+                break
+        out.append(spent / n)
+    return statistics.median(out)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -39,27 +38,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_info  # noqa: E402
+from _common import cpu_per_call, machine_info  # noqa: E402
 
 from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
 
 MPE, VMAS = "mpe_speaker_listener", "vmas_speaker_listener"
-
-
-def cpu_per_call(call, repeats: int = 3, min_s: float = 1.0) -> float:
-    """Median over `repeats` blocks of the CPU seconds of one call (each block at least min_s of CPU)."""
-    out = []
-    for _ in range(repeats):
-        n, start = 0, time.process_time()
-        while True:
-            call()
-            n += 1
-            spent = time.process_time() - start
-            if spent >= min_s:
-                break
-        out.append(spent / n)
-    return statistics.median(out)
 
 
 def env_steps(n: int) -> dict[str, float]:

@@ -43,7 +43,6 @@ import json
 import logging
 import math
 import os
-import statistics
 import sys
 import tempfile
 import time
@@ -51,6 +50,9 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_per_call, machine_info  # noqa: E402  (the standard library only: before torch and jax)
 
 BAR_MI, BAR_DROP, DROP_STEPS = 0.9, 3.0, 25  # asp-dist's accept_mi / accept_drop; the drop is per 25 steps
 WORDS = 3
@@ -505,19 +507,6 @@ def race_asp_pack(args) -> dict[str, Any]:
 
 
 # ---- env steps ---------------------------------------------------------------------------------------------
-def cpu_per_call(call: Callable, repeats: int, min_s: float) -> float:
-    """Median over `repeats` blocks of the CPU seconds of one call (each block at least min_s of CPU)."""
-    out = []
-    for _ in range(repeats):
-        n, start = 0, time.process_time()
-        while True:
-            call()
-            n += 1
-            spent = time.process_time() - start
-            if spent >= min_s:
-                break
-        out.append(spent / n)
-    return statistics.median(out)
 
 
 @contextlib.contextmanager
@@ -691,9 +680,6 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from _common import machine_info
-
     result: dict[str, Any] = {
         "machine": machine_info(), "versions": versions(), "core": args.core, "load_before": os.getloadavg()[0],
         "flags": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
