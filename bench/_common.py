@@ -65,3 +65,49 @@ def cpu_per_call(call: Callable[[], Any], repeats: int = 3, min_s: float = 1.0) 
                 break
         out.append(spent / n)
     return statistics.median(out)
+
+
+def vmas_random_steps_per_cpu_s(n: int, repeats: int = 3, min_s: float = 1.0) -> float:
+    """World-steps per CPU-second of n VMAS worlds of asp-dist's speaker–listener (asp_dist.domains.vmas.world.Worlds)
+    under fixed random choices, no gradients, every world reset after 25 steps."""
+    import torch
+
+    from asp_dist.domains.vmas.world import WorldOptions, Worlds
+
+    worlds = Worlds(n, WorldOptions())
+    worlds.reset(0)
+    choices = [{"say": torch.eye(3)[torch.randint(3, (n,))]}, {"move": torch.eye(5)[torch.randint(5, (n,))]}]
+
+    def step():
+        with torch.no_grad():
+            worlds.step(choices)
+        if worlds.t >= 25:
+            worlds.reset(1)
+
+    return n / cpu_per_call(step, repeats, min_s)
+
+
+def mpe2_random_steps_per_cpu_s(n: int, repeats: int = 3, min_s: float = 1.0) -> float:
+    """World-steps per CPU-second of n copies of mpe2's speaker–listener through asp-dist's PettingZoo adapter
+    (EnvBatch, a Python loop over copies) under random actions, every copy reset after 25 steps."""
+    import numpy as np
+
+    from asp_dist.core.registry import get_domain
+    from asp_dist.domains.pettingzoo.envs import EnvBatch
+    from asp_dist.spec import CellSpec
+
+    name = "mpe_speaker_listener"
+    batch = EnvBatch(get_domain(name).facts(CellSpec(domain=name, method="osp").resolved()), n)
+    batch.reset(range(n), range(n))
+    rng = np.random.default_rng(0)
+
+    def step():
+        batch.step([rng.integers(3, size=(n, 1)).astype(float), rng.integers(5, size=(n, 1)).astype(float)])
+        if batch.t[0] >= 25:
+            batch.reset(range(n), range(n))
+
+    try:
+        return n / cpu_per_call(step, repeats, min_s)
+    finally:
+        batch.close()
+

@@ -38,7 +38,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_per_call, machine_info  # noqa: E402
+from _common import (  # noqa: E402
+    cpu_per_call,
+    machine_info,
+    mpe2_random_steps_per_cpu_s,
+    vmas_random_steps_per_cpu_s,
+)
 
 from asp_dist.core.registry import get_domain  # noqa: E402
 from asp_dist.spec import CellSpec  # noqa: E402
@@ -48,32 +53,8 @@ MPE, VMAS = "mpe_speaker_listener", "vmas_speaker_listener"
 
 def env_steps(n: int) -> dict[str, float]:
     """World-steps per CPU-second with random actions: mpe2 copies (EnvBatch) and VMAS worlds, n each."""
-    from asp_dist.domains.pettingzoo.envs import EnvBatch
-    from asp_dist.domains.vmas.world import Worlds, WorldOptions
-
-    facts = get_domain(MPE).facts(CellSpec(domain=MPE, method="osp").resolved())
-    batch = EnvBatch(facts, n)
-    batch.reset(range(n), range(n))
-    rng = np.random.default_rng(0)
-
-    def mpe_step():
-        batch.step([rng.integers(3, size=(n, 1)).astype(float), rng.integers(5, size=(n, 1)).astype(float)])
-        if batch.t[0] >= 25:
-            batch.reset(range(n), range(n))
-
-    worlds = Worlds(n, WorldOptions())
-    worlds.reset(0)
-    choices = [{"say": torch.eye(3)[torch.randint(3, (n,))]}, {"move": torch.eye(5)[torch.randint(5, (n,))]}]
-
-    def vmas_step():
-        with torch.no_grad():
-            worlds.step(choices)
-        if worlds.t >= 25:
-            worlds.reset(1)
-
-    out = {"n": n, "mpe2_steps_per_cpu_s": n / cpu_per_call(mpe_step), "vmas_steps_per_cpu_s": n / cpu_per_call(vmas_step)}
-    batch.close()
-    return out
+    return {"n": n, "mpe2_steps_per_cpu_s": mpe2_random_steps_per_cpu_s(n),
+            "vmas_steps_per_cpu_s": vmas_random_steps_per_cpu_s(n)}
 
 
 def learner_steps() -> dict[str, float]:

@@ -52,7 +52,12 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import cpu_per_call, machine_info  # noqa: E402  (the standard library only: before torch and jax)
+from _common import (  # noqa: E402  (standard library only at import: before torch and jax)
+    cpu_per_call,
+    machine_info,
+    mpe2_random_steps_per_cpu_s,
+    vmas_random_steps_per_cpu_s,
+)
 
 BAR_MI, BAR_DROP, DROP_STEPS = 0.9, 3.0, 25  # asp-dist's accept_mi / accept_drop; the drop is per 25 steps
 WORDS = 3
@@ -580,18 +585,6 @@ def vmas_steps(b: int, repeats: int, min_s: float) -> dict[str, float]:
     import torch
     import vmas
 
-    from asp_dist.domains.vmas.world import WorldOptions, Worlds
-
-    worlds = Worlds(b, WorldOptions())
-    worlds.reset(0)
-    choices = [{"say": torch.eye(3)[torch.randint(3, (b,))]}, {"move": torch.eye(5)[torch.randint(5, (b,))]}]
-
-    def asp_step():
-        with torch.no_grad():
-            worlds.step(choices)
-        if worlds.t >= 25:
-            worlds.reset(1)
-
     env = vmas.make_env("simple_speaker_listener", num_envs=b, device="cpu", continuous_actions=False, seed=0)
     actions = [torch.randint(27, (b, 1)), torch.randint(9, (b, 1))]
     t = [0]
@@ -604,31 +597,13 @@ def vmas_steps(b: int, repeats: int, min_s: float) -> dict[str, float]:
             env.reset()
             t[0] = 0
 
-    return {"vmas_asp_world_steps_per_cpu_s": b / cpu_per_call(asp_step, repeats, min_s),
+    return {"vmas_asp_world_steps_per_cpu_s": vmas_random_steps_per_cpu_s(b, repeats, min_s),
             "vmas_own_scenario_steps_per_cpu_s": b / cpu_per_call(own_step, repeats, min_s)}
 
 
 def mpe2_steps(b: int, repeats: int, min_s: float) -> dict[str, float]:
     """mpe2's copies through asp-dist's PettingZoo adapter (EnvBatch), as bench/bench_vmas.py's env_steps."""
-    import numpy as np
-
-    from asp_dist.core.registry import get_domain
-    from asp_dist.domains.pettingzoo.envs import EnvBatch
-    from asp_dist.spec import CellSpec
-
-    name = "mpe_speaker_listener"
-    batch = EnvBatch(get_domain(name).facts(CellSpec(domain=name, method="osp").resolved()), b)
-    batch.reset(range(b), range(b))
-    rng = np.random.default_rng(0)
-
-    def step():
-        batch.step([rng.integers(3, size=(b, 1)).astype(float), rng.integers(5, size=(b, 1)).astype(float)])
-        if batch.t[0] >= 25:
-            batch.reset(range(b), range(b))
-
-    out = {"mpe2_steps_per_cpu_s": b / cpu_per_call(step, repeats, min_s)}
-    batch.close()
-    return out
+    return {"mpe2_steps_per_cpu_s": mpe2_random_steps_per_cpu_s(b, repeats, min_s)}
 
 
 def env_steps(args) -> dict[str, Any]:

@@ -132,6 +132,7 @@ class PackedVMASTrainer(PackedTrainer):
         # ---- who plays: the self-play members' worlds, block by block, in one batch ---------------------
         self.sp_rows = [i for i, m in enumerate(mem) if m.self_play]
         self.sp = _rows(self.sp_rows)
+        self.sp_idx = torch.tensor(self.sp_rows, dtype=torch.long)
         self.adv = _rows(self.adv_rows)
         self.adv_in_sp = _rows([self.sp_rows.index(i) for i in self.adv_rows])  # ASP ⊂ self-play (unsupported)
         self.world: Worlds | None = worlds(len(self.sp_rows) * self.n, options(s0)) if self.sp_rows else None
@@ -163,12 +164,11 @@ class PackedVMASTrainer(PackedTrainer):
         self._init_records()
 
     # ---- the networks, batched over members ----------------------------------------------------------
-    def _weights(self, rows: slice | torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
-        """Per agent, its layers' (Wᵀ, b) for the members `rows`: taken once an update, so that the steps that
-        use them add their gradients into one tensor (not one slice-backward and transpose-copy per step)."""
-        taken = [_take(p, rows) for p in self.leaves]
-        return [tuple(taken[k].transpose(1, 2).contiguous() if k % 2 == 0 else taken[k] for k in range(6 * a, 6 * a + 6))
-                for a in range(len(self.roles))]
+    def _weights(self, rows: slice | torch.Tensor, agent: int) -> tuple[torch.Tensor, ...]:
+        """An agent's layers' (Wᵀ, b) for the members `rows`: taken once an update, so that the steps that use
+        them add their gradients into one tensor (not one slice-backward and transpose-copy per step)."""
+        taken = [_take(p, rows) for p in self.leaves[6 * agent:6 * agent + 6]]
+        return tuple(t.transpose(1, 2).contiguous() if k % 2 == 0 else t for k, t in enumerate(taken))
 
     @staticmethod
     def _actor(weights: tuple[torch.Tensor, ...], x: torch.Tensor, keep: list | None = None) -> torch.Tensor:
@@ -223,7 +223,7 @@ class PackedVMASTrainer(PackedTrainer):
         total, entropy = torch.zeros(k, n), torch.zeros(k, n)
         role_acts, role_probs, role_idx, acts = [], [], [], []  # the role's activations, channel probs and choices
         heads: list[list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None] = [None] * len(self.roles)
-        weights = self._weights(self.sp)
+        weights = [self._weights(self.sp, a) for a in range(len(self.roles))]
         for t in range(T):
             choices, offset = [], 0
             for a, agent in enumerate(self.roles):
@@ -253,7 +253,7 @@ class PackedVMASTrainer(PackedTrainer):
 
             x, h1, h2 = (steps([kept[i] for kept in role_acts]) for i in range(3))
             probs = _ChannelProbs.apply(steps(role_probs), x, h1, h2, self._part_start,
-                                        *self._weights(self.adv)[self.role])
+                                        *self._weights(self.adv, self.role))
             channel = straight_through(steps(role_idx), probs)
         return loss, channel
 
@@ -276,7 +276,7 @@ class PackedVMASTrainer(PackedTrainer):
 
     def _paired_loss(self) -> torch.Tensor:
         """Every member's cross-entropy of each of the role's choices against the base's (M,), 0 without P."""
-        logits, start, loss = self._actor(self._weights(slice(None))[self.role], self.p_obs), 0, torch.zeros(self.M)
+        logits, start, loss = self._actor(self._weights(slice(None), self.role), self.p_obs), 0, torch.zeros(self.M)
         for p, (_, size) in enumerate(self.roles[self.role].parts):
             logp = logits[..., start:start + size].log_softmax(-1)
             start += size
@@ -318,7 +318,7 @@ class PackedVMASTrainer(PackedTrainer):
         sp_loss = torch.zeros(self.M)
         if self.sp_rows:
             loss, channel = self._episode(j)
-            sp_loss = sp_loss.index_put((torch.tensor(self.sp_rows),), loss)
+            sp_loss = sp_loss.index_put((self.sp_idx,), loss)
             total = total + self.w_sp * sp_loss
         paired = self._paired_loss() if self.n_p else torch.zeros(self.M)
         total = total + torch.where(self.p_members, self.w_p * paired, torch.zeros(()))
@@ -377,7 +377,7 @@ class _ChannelProbs(torch.autograd.Function):
     @staticmethod
     def forward(ctx, probs, x, h1, h2, start, W1T, b1, W2T, b2, W3T, b3):
         ctx.save_for_backward(probs, x, h1, h2, W2T, W3T)
-        ctx.start, ctx.shapes = start, (W1T.shape, b1.shape, b3.shape)
+        ctx.start, ctx.b3_shape = start, b3.shape
         return probs.clone()
 
     @staticmethod
@@ -385,7 +385,7 @@ class _ChannelProbs(torch.autograd.Function):
         probs, x, h1, h2, W2T, W3T = ctx.saved_tensors
         cols = slice(ctx.start, ctx.start + probs.shape[-1])
         g3 = probs * (grad - (grad * probs).sum(-1, keepdim=True))  # softmax's backward: the channel's logits
-        gW3T, gb3 = W3T.new_zeros(W3T.shape), W3T.new_zeros(ctx.shapes[2])
+        gW3T, gb3 = W3T.new_zeros(W3T.shape), W3T.new_zeros(ctx.b3_shape)
         gW3T[..., cols], gb3[..., cols] = torch.bmm(h2.transpose(1, 2), g3), g3.sum(1, keepdim=True)
         g2 = _tanh_backward(torch.bmm(g3, W3T[..., cols].transpose(1, 2)), h2)
         g1 = _tanh_backward(torch.bmm(g2, W2T.transpose(1, 2)), h1)
